@@ -1,0 +1,22 @@
+# Source me: the environment in which the venv's ROS 2 wheels and the
+# workspace's packages are found (AMENT_PREFIX_PATH, PYTHONPATH, ...).
+# `. scripts/env.sh --no-workspace` sets up the venv part only (for building).
+_artrack_root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+_venv=$_artrack_root/.venv
+export VIRTUAL_ENV=$_venv
+export PATH=$_venv/bin:$PATH
+export AMENT_PREFIX_PATH=$_venv${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}
+export CMAKE_PREFIX_PATH=$_venv${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}
+export RMW_IMPLEMENTATION=${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}
+export PYTHONDONTWRITEBYTECODE=1
+if [ "${1:-}" != "--no-workspace" ]; then
+  _ins=$_artrack_root/ros2_ws/install
+  _pyver=$("$_venv/bin/python" -c 'import sys; print(f"python{sys.version_info[0]}.{sys.version_info[1]}")')
+  for _pkg in artrack_msgs artrack_nodes; do
+    export AMENT_PREFIX_PATH=$_ins/$_pkg:$AMENT_PREFIX_PATH
+    export PYTHONPATH=$_ins/$_pkg/lib/$_pyver/site-packages${PYTHONPATH:+:$PYTHONPATH}
+    export LD_LIBRARY_PATH=$_ins/$_pkg/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+  done
+  export PATH=$_ins/artrack_nodes/lib/artrack_nodes:$PATH
+fi
+unset _artrack_root _venv _ins _pyver _pkg

@@ -1,0 +1,69 @@
+#!/usr/bin/env bash
+# Idempotent set-up: .venv with pinned ROS 2 Jazzy wheels and the core
+# libraries, the fix of the wheels' CMake files, and the colcon build of the
+# workspace (ros2_ws/). Safe to run again: each step is skipped when done.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+VENV=$ROOT/.venv
+
+pick_python() {
+  for py in python3.12 python3.11 python3.10 python3; do
+    if command -v "$py" >/dev/null 2>&1 &&
+       "$py" -c 'import sys; sys.exit(not ((3, 10) <= sys.version_info[:2] <= (3, 12)))'; then
+      echo "$py"; return 0
+    fi
+  done
+  echo "setup: need CPython 3.10-3.12 (the ros-jazzy wheels exist for those only)" >&2
+  return 1
+}
+
+if [ ! -x "$VENV/bin/python" ]; then
+  PY=$(pick_python)
+  echo "setup: creating .venv with $PY"
+  "$PY" -m venv "$VENV"
+fi
+
+STAMP=$VENV/.requirements.sha
+WANT=$(sha256sum requirements.txt | cut -d' ' -f1)
+if [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ]; then
+  echo "setup: installing pinned packages into .venv"
+  "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r requirements.txt
+  echo "$WANT" > "$STAMP"
+fi
+
+# The wheels' CMake exports name the build machine's interpreter paths
+# (/opt/python/cp3XX-cp3XX/...); point them at this interpreter and venv.
+"$VENV/bin/python" - <<'PY'
+import pathlib, re, sys, sysconfig
+venv = pathlib.Path(sys.prefix)
+site = pathlib.Path(sysconfig.get_paths()["purelib"])
+include = sysconfig.get_paths()["include"]
+inc_re = re.compile(r"/opt/python/cp3\d+-cp3\d+/include/python3\.\d+")
+site_re = re.compile(r"/opt/python/cp3\d+-cp3\d+/lib/python3\.\d+/site-packages")
+fixed = 0
+for path in (venv / "share").rglob("*.cmake"):
+    text = path.read_text()
+    if "/opt/python/" not in text:
+        continue
+    new = site_re.sub(str(site), inc_re.sub(include, text))
+    if new != text:
+        path.write_text(new)
+        fixed += 1
+if fixed:
+    print(f"setup: fixed interpreter paths in {fixed} CMake files")
+PY
+
+# Build the workspace when a source of a package changed since the last build.
+STAMP_BUILD=$ROOT/ros2_ws/install/.artrack_build_stamp
+if [ ! -f "$STAMP_BUILD" ] || [ -n "$(find src -newer "$STAMP_BUILD" -type f -print -quit)" ]; then
+  echo "setup: colcon build"
+  # shellcheck disable=SC1091
+  . "$ROOT/scripts/env.sh" --no-workspace
+  (cd ros2_ws && colcon --log-base log build --base-paths ../src \
+     --cmake-args -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$VENV/bin/python" \
+     --event-handlers console_direct- > log/last_build.txt 2>&1) || {
+    echo "setup: colcon build failed; see ros2_ws/log/last_build.txt" >&2
+    tail -30 ros2_ws/log/last_build.txt >&2; exit 1; }
+  touch "$STAMP_BUILD"
+fi
