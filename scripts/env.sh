@@ -20,3 +20,6 @@ if [ "${1:-}" != "--no-workspace" ]; then
   export PATH=$_ins/artrack_nodes/lib/artrack_nodes:$PATH
 fi
 unset _artrack_root _venv _ins _pyver _pkg
+# Discovery stays on this machine unless the user widens it (two-host runs: SUBNET).
+export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
+export OPENBLAS_NUM_THREADS=${OPENBLAS_NUM_THREADS:-1}

@@ -60,6 +60,7 @@ if [ ! -f "$STAMP_BUILD" ] || [ -n "$(find src -newer "$STAMP_BUILD" -type f -pr
   echo "setup: colcon build"
   # shellcheck disable=SC1091
   . "$ROOT/scripts/env.sh" --no-workspace
+  mkdir -p ros2_ws/log
   (cd ros2_ws && colcon --log-base log build --base-paths ../src \
      --cmake-args -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$VENV/bin/python" \
      --event-handlers console_direct- > log/last_build.txt 2>&1) || {
