@@ -1,0 +1,278 @@
+"""Feedback projection: predicted 3-D blobs -> 2-D blob priors per camera.
+
+ALGORITHMS.md §1, "Inverse observation model": for a link with predicted 3-D
+mean ``x`` and covariance ``Σ₃`` the prior in a camera is the projected mean and
+the first-order projected covariance ``Σ₂ = J_π Σ₃ J_πᵀ``, where ``J_π`` (2x3) is
+the Jacobian of the *full* camera model (pinhole + lens distortion,
+:meth:`artrack.cameras.Camera.project_jacobian`) at ``x``; the paper's cruder
+form divides the orthogonal xy covariance by (1 + z/f)².
+
+Confidence. The paper weights each prior by the filter's confidence, measured
+by the norm of the predicted error covariance ``‖P_{t|t-1}‖``. Here
+
+    confidence = exp(-‖P‖_F / s)          (s = ``confidence_scale``, m²)
+
+which is 1 for a certain prediction, 1/e when ‖P‖_F = s, and -> 0 as the
+prediction becomes vague. P is the predicted *position* covariance of the blob's
+link (``LinkEstimate.cov[:3, :3]``) when a BodyEstimate is given and has that
+link; otherwise (plain Blob3D list) the Blob3D covariance itself. It is computed
+in 3-D, so it is the same in every camera (a far camera does not make the
+prediction more trustworthy). The default s = 0.01 m² gives 0.5 for an isotropic
+σ ≈ 6.3 cm. The projected Gaussian itself always uses the Blob3D covariance
+(the blob's predicted extent).
+
+Visibility (codes of :mod:`artrack.types`), checked in this order:
+
+* BEHIND_CAMERA — depth <= ``min_depth``; mean and cov are NaN, confidence 0;
+* OFF_IMAGE — projected mean outside the image by more than ``margin`` px
+  (default 5 % of the larger image side), or the point lies so far outside the
+  field of view that the distortion polynomial would fold it back into the
+  image; confidence 0 (mean and cov still given);
+* OCCLUDED — the segment from the camera centre to the blob mean passes
+  through a capsule of another link (not the blob's own label) nearer to the
+  camera by more than ``occlusion_margin``; confidence kept (the 2-D tracker
+  decides what an occluded prior is worth). Capsules come from ``occluders``
+  or, given a BodyEstimate and the BodyModel, from the predicted link poses and
+  the model's shapes (:func:`occluders_from_body`);
+* VISIBLE otherwise.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .cameras import Camera
+from .types import BEHIND_CAMERA, OCCLUDED, OFF_IMAGE, VISIBLE, Blob3D, BodyEstimate, LinkEstimate, Prior2D
+
+__all__ = [
+    "Capsule",
+    "confidence_from_covariance",
+    "occluded",
+    "occluders_from_body",
+    "project_gaussian",
+    "project_priors",
+]
+
+#: Default ``confidence_scale`` s in exp(-‖Σ₃‖_F / s), m².
+DEFAULT_CONFIDENCE_SCALE = 0.01
+
+
+@dataclass
+class Capsule:
+    """A capsule of the predicted body (world frame, m): the set of points within
+    ``radius`` of the segment p0-p1 (a sphere when p0 == p1). ``label`` is the
+    link it belongs to; a blob is never occluded by a capsule of its own label."""
+
+    label: str
+    p0: np.ndarray
+    p1: np.ndarray
+    radius: float
+
+
+def project_gaussian(
+    camera: Camera, mean: np.ndarray, cov: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """First-order projection of a 3-D Gaussian into a camera image.
+
+    mean: (3,) m, world frame; cov: (3, 3) m². Returns mean2: (2,) px (the projected
+    mean, with distortion), cov2: (2, 2) px² = J Σ₃ Jᵀ with J = d(uv)/d(X_world) at the
+    mean, and depth: optical-frame z of the mean, m (<= 0: behind the camera, where the
+    projection is meaningless).
+    """
+    mean = np.asarray(mean, dtype=float).reshape(3)
+    cov = np.asarray(cov, dtype=float).reshape(3, 3)
+    uv, J = camera.project_jacobian(mean[None])
+    depth = float(camera.R[2] @ mean + camera.t[2])
+    J = J[0]
+    cov2 = J @ cov @ J.T
+    return uv[0], 0.5 * (cov2 + cov2.T), depth
+
+
+def confidence_from_covariance(cov: np.ndarray, scale: float = DEFAULT_CONFIDENCE_SCALE) -> float:
+    """exp(-‖Σ‖_F / scale) in [0, 1]: the paper's ‖P_{t|t-1}‖ confidence (module docstring)."""
+    norm = float(np.linalg.norm(np.asarray(cov, dtype=float)))
+    if not np.isfinite(norm):
+        return 0.0
+    return float(np.exp(-norm / float(scale)))
+
+
+def _segment_distances(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray) -> np.ndarray:
+    """Distances between one segment a0-a1 (3,) and M segments b0-b1 (M, 3) -> (M,).
+
+    Closest points of two segments (Ericson, Real-Time Collision Detection, 5.1.9),
+    vectorised over the second segment.
+    """
+    d1 = a1 - a0  # (3,)
+    d2 = b1 - b0  # (M, 3)
+    r = a0 - b0  # (M, 3)
+    eps = 1e-12
+    a = float(d1 @ d1)
+    e = np.einsum("ij,ij->i", d2, d2)
+    f = np.einsum("ij,ij->i", d2, r)
+    c = r @ d1
+    b = d2 @ d1
+    e_ok = e > eps
+    e_safe = np.where(e_ok, e, 1.0)
+    if a <= eps:  # first segment is a point
+        s = np.zeros_like(e)
+        t = np.where(e_ok, np.clip(f / e_safe, 0.0, 1.0), 0.0)
+    else:
+        denom = a * e - b * b
+        ok = denom > eps * a * np.maximum(e, eps)  # not parallel
+        s = np.where(ok, (b * f - c * e) / np.where(ok, denom, 1.0), 0.0)
+        s = np.clip(s, 0.0, 1.0)
+        t = np.where(e_ok, (b * s + f) / e_safe, 0.0)
+        s = np.where(t < 0.0, np.clip(-c / a, 0.0, 1.0), s)
+        s = np.where(t > 1.0, np.clip((b - c) / a, 0.0, 1.0), s)
+        t = np.clip(t, 0.0, 1.0)
+        # degenerate second segment (a point): t = 0, s from projecting it on the first
+        s = np.where(e_ok, s, np.clip(-c / a, 0.0, 1.0))
+    p = a0 + s[:, None] * d1
+    q = b0 + t[:, None] * d2
+    return np.linalg.norm(p - q, axis=1)
+
+
+def _as_capsules(occluders: Iterable) -> list[Capsule]:
+    out = []
+    for o in occluders:
+        if isinstance(o, Capsule):
+            out.append(o)
+        else:
+            label, p0, p1, radius = o
+            out.append(Capsule(str(label), np.asarray(p0, float), np.asarray(p1, float), float(radius)))
+    return out
+
+
+def occluded(
+    camera_center: np.ndarray,
+    point: np.ndarray,
+    label: str,
+    capsules: Sequence[Capsule],
+    occlusion_margin: float = 0.05,
+) -> bool:
+    """True if a capsule whose label differs from ``label`` intersects the line of sight
+    from camera_center to ``point`` (world, m), shortened by ``occlusion_margin`` m at the
+    point's end (so that a neighbouring link touching the blob near its joint does not
+    count). Capsules beyond the point never occlude it."""
+    others = [c for c in capsules if c.label != label]
+    if not others:
+        return False
+    C = np.asarray(camera_center, float)
+    X = np.asarray(point, float)
+    v = X - C
+    dist = float(np.linalg.norm(v))
+    if dist <= occlusion_margin:
+        return False
+    end = X - v / dist * occlusion_margin
+    p0 = np.array([c.p0 for c in others], dtype=float).reshape(-1, 3)
+    p1 = np.array([c.p1 for c in others], dtype=float).reshape(-1, 3)
+    radii = np.array([c.radius for c in others], dtype=float)
+    return bool(np.any(_segment_distances(C, end, p0, p1) < radii))
+
+
+def occluders_from_body(body, links: Iterable[LinkEstimate]) -> list[Capsule]:
+    """World capsules of the body's shapes at the given link poses.
+
+    body: a BodyModel (uses ``body.links[i].name`` and ``.shapes``, each with
+    ``as_capsule()`` -> (p0, p1, radius) in the link frame); links: LinkEstimate
+    (position (3,) m = link-frame origin, rotation (3, 3) world_from_link). Links
+    without an estimate contribute nothing. Capsule labels are link names.
+    """
+    poses = {lk.name: lk for lk in links}
+    out = []
+    for link in body.links:
+        est = poses.get(link.name)
+        if est is None:
+            continue
+        R = np.asarray(est.rotation, dtype=float).reshape(3, 3)
+        p = np.asarray(est.position, dtype=float).reshape(3)
+        for shape in link.shapes:
+            a, b, r = shape.as_capsule()
+            out.append(Capsule(link.name, R @ a + p, R @ b + p, float(r)))
+    return out
+
+
+def _fov_radius2(camera: Camera) -> float:
+    """Squared radius, in undistorted normalised coordinates, beyond which a point is
+    certainly outside the image: 1.5² x that of the farthest image corner."""
+    w, h = camera.width, camera.height
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    xy = camera.normalized_from_pixel(corners)
+    return float(2.25 * np.max(np.sum(xy**2, axis=1)))
+
+
+def project_priors(
+    blobs3d: Sequence[Blob3D] | BodyEstimate,
+    cameras: Mapping[str, Camera] | Iterable[Camera],
+    stamp_ns: int | None = None,
+    occluders: Iterable[Capsule | tuple] | None = None,
+    confidence_scale: float = DEFAULT_CONFIDENCE_SCALE,
+    margin: float | None = None,
+    occlusion_margin: float = 0.05,
+    min_depth: float = 1e-3,
+    body=None,
+) -> dict[str, list[Prior2D]]:
+    """Project predicted 3-D blobs into every camera as 2-D priors.
+
+    blobs3d: the predicted blobs (world frame, mean (3,) m, cov (3, 3) m²), or a
+    BodyEstimate (its ``.blobs``; its ``stamp_ns`` when ``stamp_ns`` is None; its
+    links' position covariances for the confidence).
+    cameras: dict name -> Camera or a list of cameras. stamp_ns: the frame the
+    priors predict (int ns). occluders: capsules of the predicted body, as
+    :class:`Capsule` or tuples (label, p0 (3,), p1 (3,), radius) in world m.
+    confidence_scale: s in exp(-‖P‖_F / s), m². margin: OFF_IMAGE tolerance, px
+    (default 5 % of the larger image side). occlusion_margin: m (see ``occluded``).
+    min_depth: m, nearer points are BEHIND_CAMERA. body: BodyModel; with a
+    BodyEstimate and no ``occluders``, the occluders are its shapes at the
+    predicted link poses.
+
+    ``project_priors(prediction, cameras, body)`` (the ARCHITECTURE.md form) is
+    accepted too: a third positional argument that is not an integer is the body.
+
+    Returns {camera name: [Prior2D per blob, in input order]}, every blob in every
+    camera, each with its visibility code (module docstring).
+    """
+    if stamp_ns is not None and not isinstance(stamp_ns, int | np.integer):
+        body, stamp_ns = stamp_ns, None
+    link_cov: dict[str, np.ndarray] = {}
+    if isinstance(blobs3d, BodyEstimate):
+        if stamp_ns is None:
+            stamp_ns = blobs3d.stamp_ns
+        link_cov = {lk.name: np.asarray(lk.cov, dtype=float)[:3, :3] for lk in blobs3d.links}
+        if occluders is None and body is not None:
+            occluders = occluders_from_body(body, blobs3d.links)
+        blobs3d = blobs3d.blobs
+    stamp_ns = int(stamp_ns or 0)
+    cams = list(cameras.values()) if isinstance(cameras, Mapping) else list(cameras)
+    capsules = _as_capsules(occluders) if occluders is not None else []
+
+    out: dict[str, list[Prior2D]] = {}
+    for cam in cams:
+        m = 0.05 * max(cam.width, cam.height) if margin is None else float(margin)
+        r2_max = _fov_radius2(cam)
+        priors = []
+        for blob in blobs3d:
+            mean3 = np.asarray(blob.mean, dtype=float).reshape(3)
+            cov3 = np.asarray(blob.cov, dtype=float).reshape(3, 3)
+            conf = confidence_from_covariance(link_cov.get(blob.label, cov3), confidence_scale)
+            x_cam = cam.R @ mean3 + cam.t
+            if x_cam[2] <= min_depth:
+                nan2 = np.full(2, np.nan)
+                priors.append(
+                    Prior2D(blob.label, nan2, np.full((2, 2), np.nan), 0.0, BEHIND_CAMERA, stamp_ns)
+                )
+                continue
+            mean2, cov2, _ = project_gaussian(cam, mean3, cov3)
+            r2 = (x_cam[0] ** 2 + x_cam[1] ** 2) / x_cam[2] ** 2
+            if r2 > r2_max or not cam.in_image(mean2, margin=m)[0]:
+                priors.append(Prior2D(blob.label, mean2, cov2, 0.0, OFF_IMAGE, stamp_ns))
+                continue
+            vis = VISIBLE
+            if capsules and occluded(cam.center, mean3, blob.label, capsules, occlusion_margin):
+                vis = OCCLUDED
+            priors.append(Prior2D(blob.label, mean2, cov2, conf, vis, stamp_ns))
+        out[cam.name] = priors
+    return out

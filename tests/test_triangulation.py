@@ -1,0 +1,166 @@
+"""Covariance-weighted triangulation of 2-D blobs (artrack.triangulation)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from artrack.cameras import Camera
+from artrack.errors import InputError
+from artrack.triangulation import midpoint, triangulate_blob, triangulate_blobs
+from artrack.types import Blob2D, Blob3D
+
+K = np.array([[900.0, 0.0, 639.5], [0.0, 910.0, 359.5], [0.0, 0.0, 1.0]])
+DIST = np.array([-0.12, 0.05, 0.0005, -0.0003, 0.01])
+
+
+def ring_cameras(n: int = 4) -> list[Camera]:
+    """n cameras on a 4 m ring, 2.2 m high, looking at (0, 0, 1)."""
+    cams = []
+    for i in range(n):
+        a = math.radians(45 + 360 / n * i)
+        eye = [4 * math.cos(a), 4 * math.sin(a), 2.2]
+        cams.append(Camera.look_at(f"cam{i + 1:02d}", 1280, 720, K, eye, [0, 0, 1.0], dist=DIST))
+    return cams
+
+
+def covs_2d(rng: np.random.Generator, n: int) -> list[np.ndarray]:
+    """Random anisotropic 2-D covariances, 1-4 px standard deviations."""
+    out = []
+    for _ in range(n):
+        a = rng.uniform(0, np.pi)
+        R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        out.append(R @ np.diag(rng.uniform(1.0, 4.0, 2) ** 2) @ R.T)
+    return out
+
+
+def observe(cams: list[Camera], X: np.ndarray, covs: list[np.ndarray], label: str = "head"):
+    return [
+        (cam, Blob2D(label, cam.project(X)[0][0], cov, pixel_count=100))
+        for cam, cov in zip(cams, covs, strict=True)
+    ]
+
+
+def test_midpoint_of_intersecting_rays():
+    X = np.array([0.2, -0.1, 1.3])
+    origins = np.array([[3.0, 0, 1], [0, 3.0, 2], [-2.0, -2, 0.5]])
+    dirs = X - origins
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    P, spread = midpoint(origins, dirs)
+    np.testing.assert_allclose(P, X, atol=1e-12)
+    assert spread > 0.1
+
+
+def test_exact_recovery_without_noise():
+    rng = np.random.default_rng(11)
+    cams = ring_cameras()
+    for _ in range(10):
+        X = rng.uniform([-0.7, -0.7, 0.2], [0.7, 0.7, 1.9])
+        for subset in (cams, cams[:2], cams[1:4]):
+            blob = triangulate_blob(observe(subset, X, covs_2d(rng, len(subset))))
+            assert blob is not None and blob.label == "head"
+            np.testing.assert_allclose(blob.mean, X, atol=1e-8)
+            assert blob.cameras == tuple(c.name for c in subset)
+            assert np.all(np.linalg.eigvalsh(blob.cov) > 0)
+
+
+def test_covariance_is_consistent_with_pixel_noise():
+    """Seeded Monte-Carlo: the spread of estimates from noisy 2-D means matches the
+    returned covariance (inverse information)."""
+    rng = np.random.default_rng(12)
+    cams = ring_cameras()
+    X = np.array([0.25, -0.15, 1.4])
+    covs = covs_2d(rng, len(cams))
+    clean = observe(cams, X, covs)
+    predicted = triangulate_blob(clean).cov
+    n = 1500
+    est = np.empty((n, 3))
+    for i in range(n):
+        noisy = [(cam, Blob2D("head", rng.multivariate_normal(b.mean, b.cov), b.cov)) for cam, b in clean]
+        est[i] = triangulate_blob(noisy).mean
+    err = est - X
+    assert np.linalg.norm(err.mean(axis=0)) < 4 * np.sqrt(np.trace(predicted) / n)  # unbiased
+    empirical = np.cov(err.T)
+    assert np.linalg.norm(empirical - predicted) / np.linalg.norm(predicted) < 0.12
+    # Normalised errors are chi² with 3 dof: mean 3 (std of the mean sqrt(6 / n) = 0.063).
+    d2 = np.einsum("ni,ij,nj->n", err, np.linalg.inv(predicted), err)
+    assert d2.mean() == pytest.approx(3.0, abs=0.25)
+
+
+def test_single_view_needs_a_prior_and_takes_depth_from_it():
+    cam = ring_cameras()[0]
+    X = np.array([0.1, 0.2, 1.2])
+    obs = observe([cam], X, [np.eye(2)])  # 1 px: ~5 mm across the ray at 4.3 m
+    assert triangulate_blob(obs) is None
+
+    prior_mean = X + np.array([0.05, -0.08, 0.06])  # wrong mostly across the ray
+    prior = Blob3D("head", prior_mean, np.eye(3) * 0.1**2)
+    blob = triangulate_blob(obs, prior)
+    assert blob is not None and blob.cameras == ("cam01",)
+    origin, d = cam.rays(obs[0][1].mean[None])
+    d = d[0]
+    # On the ray (the pixel is certain compared with a 10 cm prior) ...
+    off_ray = (blob.mean - origin) - ((blob.mean - origin) @ d) * d
+    assert np.linalg.norm(off_ray) < 2e-3
+    # ... at the depth of the prior mean along that ray, with the prior's variance along it.
+    assert (blob.mean - origin) @ d == pytest.approx((prior_mean - origin) @ d, abs=2e-3)
+    assert d @ blob.cov @ d == pytest.approx(0.1**2, rel=0.02)
+    # The view pins the two directions across the ray: 1 px at depth z is z / f metres.
+    z = cam.project(blob.mean)[1][0]
+    lateral = np.linalg.eigvalsh(blob.cov)[:2]
+    np.testing.assert_allclose(lateral, (z / 905.0) ** 2, rtol=0.1)
+
+
+def test_prior_is_ignored_with_two_views_unless_asked():
+    rng = np.random.default_rng(14)
+    cams = ring_cameras()[:2]
+    X = np.array([0.0, 0.0, 1.0])
+    obs = observe(cams, X, covs_2d(rng, 2))
+    prior = Blob3D("head", X + 0.1, np.eye(3) * 0.05**2)
+    np.testing.assert_allclose(triangulate_blob(obs, prior).mean, X, atol=1e-8)
+    fused = triangulate_blob(obs, prior, fuse_prior=True)
+    assert np.linalg.norm(fused.mean - X) > 1e-6
+    assert np.all(np.linalg.eigvalsh(triangulate_blob(obs).cov - fused.cov) > -1e-15)  # more information
+
+
+def test_triangulate_blobs_groups_by_label():
+    cams = ring_cameras()
+    heads = np.array([0.0, 0.1, 1.7])
+    hand = np.array([0.4, -0.2, 1.1])
+    foot = np.array([0.1, 0.1, 0.1])
+    by_cam = {}
+    for i, cam in enumerate(cams):
+        blobs = [Blob2D("head", cam.project(heads)[0][0], np.eye(2) * 4, pixel_count=300)]
+        if i < 2:
+            blobs.append(Blob2D("left_hand", cam.project(hand)[0][0], np.eye(2) * 2, pixel_count=80))
+        if i == 3:
+            blobs.append(Blob2D("left_foot", cam.project(foot)[0][0], np.eye(2), pixel_count=50))
+            # a second, smaller "head" candidate in the same camera is ignored
+            blobs.append(Blob2D("head", np.array([10.0, 10.0]), np.eye(2), pixel_count=5))
+        by_cam[cam.name] = blobs
+    out = triangulate_blobs(by_cam, {c.name: c for c in cams})
+    assert set(out) == {"head", "left_hand"}  # foot: one view, no prior
+    np.testing.assert_allclose(out["head"].mean, heads, atol=1e-8)
+    np.testing.assert_allclose(out["left_hand"].mean, hand, atol=1e-8)
+    assert out["left_hand"].cameras == ("cam01", "cam02")
+    priors = {"left_foot": Blob3D("left_foot", foot + 0.02, np.eye(3) * 0.05**2)}
+    out = triangulate_blobs(by_cam, cams, priors)
+    assert out["left_foot"].cameras == ("cam04",)
+    with pytest.raises(InputError, match="cam99"):
+        triangulate_blobs({"cam99": []}, cams)
+
+
+def test_view_behind_the_camera_is_dropped():
+    """A spurious blob in a camera that faces away from the point: its ray cannot meet the
+    others in front of it, so that view is dropped and the rest still triangulate exactly."""
+    cams = ring_cameras()[:3]
+    X = np.array([0.0, 0.0, 1.0])
+    obs = observe(cams, X, [np.eye(2)] * 3)
+    away = Camera.look_at("away", 1280, 720, K, [0.5, 0.0, 1.0], [2.0, 0.0, 1.0])
+    assert away.project(X)[1][0] < 0
+    obs.append((away, Blob2D("head", np.array([639.5, 359.5]), np.eye(2))))
+    blob = triangulate_blob(obs)
+    assert blob is not None and "away" not in blob.cameras
+    np.testing.assert_allclose(blob.mean, X, atol=1e-8)
