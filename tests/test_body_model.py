@@ -1,0 +1,173 @@
+"""Tests of artrack.body_model: YAML loading, forward kinematics, errors."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from artrack.body_model import BodyModel, body_model_from_dict, load_body_model
+from artrack.errors import ArtrackError, BodyModelError
+
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "body_model.yaml"
+
+JOINTS = ["pelvis", "thorax", "head", "l_shoulder", "l_elbow", "l_wrist", "r_shoulder", "r_elbow",
+          "r_wrist", "l_hip", "l_knee", "l_ankle", "r_hip", "r_knee", "r_ankle"]
+LINKS = ["pelvis", "torso", "head", "l_upper_arm", "l_forearm", "l_hand", "r_upper_arm", "r_forearm",
+         "r_hand", "l_thigh", "l_shin", "l_foot", "r_thigh", "r_shin", "r_foot"]
+
+
+@pytest.fixture(scope="module")
+def body() -> BodyModel:
+    return load_body_model()
+
+
+@pytest.fixture(scope="module")
+def raw() -> dict:
+    return yaml.safe_load(CONFIG.read_text())
+
+
+def test_structure(body):
+    assert body.link_names == LINKS
+    assert body.joint_names == JOINTS
+    assert body.parent_index[0] == -1
+    assert all(body.parent_index[i] < i for i in range(1, len(LINKS)))
+    # 6 root + 8 ball * 3 + 6 hinges (elbows, knees, ankles)
+    assert body.n_dof == 6 + 8 * 3 + 6
+    assert body.lower.shape == body.upper.shape == (body.n_dof,)
+    assert np.all(body.lower <= body.upper)
+    assert set(body.blob_labels) == {"head", "torso", "l_hand", "r_hand", "l_thigh", "r_thigh",
+                                     "l_shin", "r_shin"}
+    assert body.within_limits(body.rest_pose())
+
+
+def test_default_path_via_env(monkeypatch, tmp_path):
+    (tmp_path / "body_model.yaml").write_text(CONFIG.read_text().replace("adult_1p75", "from_env"))
+    monkeypatch.setenv("ARTRACK_CONFIG_DIR", str(tmp_path))
+    assert load_body_model().name == "from_env"
+
+
+def test_rest_pose_joint_heights(body):
+    theta = body.rest_pose()
+    J = dict(zip(body.joint_names, body.joint_positions(theta), strict=True))
+    assert J["pelvis"] == pytest.approx([0.0, 0.0, 0.95])
+    assert J["thorax"][2] == pytest.approx(1.47)
+    assert J["head"][2] == pytest.approx(1.62)
+    for side, sy in (("l", 1.0), ("r", -1.0)):
+        assert J[f"{side}_shoulder"] == pytest.approx([0.0, sy * 0.19, 1.42])
+        assert J[f"{side}_elbow"] == pytest.approx([0.0, sy * 0.19, 1.13])
+        assert J[f"{side}_wrist"] == pytest.approx([0.0, sy * 0.19, 0.88])
+        assert J[f"{side}_hip"] == pytest.approx([0.0, sy * 0.09, 0.95])
+        assert J[f"{side}_knee"] == pytest.approx([0.0, sy * 0.09, 0.51])
+        assert J[f"{side}_ankle"] == pytest.approx([0.0, sy * 0.09, 0.08])
+    # all link frames aligned with the world at rest
+    T = body.forward_kinematics(theta)
+    assert np.allclose(T[:, :3, :3], np.eye(3))
+    # feet rest on the floor, head top near 1.75 m
+    p0, p1, r, _, _ = body.capsules(theta)
+    lows = np.minimum(p0[:, 2], p1[:, 2]) - r
+    highs = np.maximum(p0[:, 2], p1[:, 2]) + r
+    assert lows.min() == pytest.approx(0.0, abs=0.01)
+    assert 1.70 < highs.max() < 1.80
+
+
+def test_elbow_flexion_by_hand(body):
+    theta = body.rest_pose()
+    theta[body.dof_slice("l_forearm")] = np.pi / 2
+    J = dict(zip(body.joint_names, body.joint_positions(theta), strict=True))
+    # forearm (0.25 m) points forward (+x) from the elbow
+    assert J["l_elbow"] == pytest.approx([0.0, 0.19, 1.13])
+    assert J["l_wrist"] == pytest.approx([0.25, 0.19, 1.13])
+    # 60 degrees: wrist at elbow + 0.25 (sin 60, 0, -cos 60)
+    theta[body.dof_slice("l_forearm")] = np.pi / 3
+    wrist = body.joint_positions(theta)[body.joint_names.index("l_wrist")]
+    assert wrist == pytest.approx([0.25 * np.sin(np.pi / 3), 0.19, 1.13 - 0.25 * 0.5])
+
+
+def test_shoulder_abduction_and_root_rotation(body):
+    theta = body.rest_pose()
+    theta[body.dof_slice("l_upper_arm")] = [np.pi / 2, 0.0, 0.0]  # arm straight out to the left
+    J = dict(zip(body.joint_names, body.joint_positions(theta), strict=True))
+    assert J["l_wrist"] == pytest.approx([0.0, 0.19 + 0.54, 1.42])
+    # turn the whole body 90 degrees to the left about z: +y (left) becomes -x
+    theta[3:6] = [0.0, 0.0, np.pi / 2]
+    theta[0:3] = [1.0, 2.0, 0.95]
+    J = dict(zip(body.joint_names, body.joint_positions(theta), strict=True))
+    assert J["l_wrist"] == pytest.approx([1.0 - 0.73, 2.0, 1.42])
+
+
+def test_batch_equals_single(body):
+    rng = np.random.default_rng(0)
+    n = 500
+    theta = rng.uniform(np.maximum(body.lower, -3), np.minimum(body.upper, 3), size=(n, body.n_dof))
+    Tb = body.forward_kinematics(theta)
+    assert Tb.shape == (n, 15, 4, 4)
+    for k in (0, 17, 499):
+        assert np.allclose(Tb[k], body.forward_kinematics(theta[k]))
+    jb = body.joint_positions(theta.reshape(20, 25, -1))
+    assert jb.shape == (20, 25, 15, 3)
+    assert np.allclose(jb.reshape(n, 15, 3)[123], body.joint_positions(theta[123]))
+    # rigid: bone lengths preserved
+    L = np.linalg.norm(jb[..., 4, :] - jb[..., 5, :], axis=-1)
+    assert np.allclose(L, 0.25)
+    means, covs = body.blob_gaussians(theta[:3])
+    assert means.shape == (3, 8, 3) and covs.shape == (3, 8, 3, 3)
+    assert np.allclose(covs, np.swapaxes(covs, -1, -2))
+
+
+def test_capsules_and_blobs(body):
+    theta = body.rest_pose()
+    p0, p1, radius, link, colour = body.capsules(theta)
+    S = len(radius)
+    assert p0.shape == p1.shape == (S, 3) and link.shape == (S,) and len(colour) == S
+    assert {"skin", "shirt", "trousers", "shoes", "hair"} <= set(colour)
+    blobs = body.blobs3d(theta)
+    assert [b.label for b in blobs] == body.blob_labels
+    head = blobs[body.blob_labels.index("head")]
+    assert head.mean[2] == pytest.approx(1.62)
+    assert np.all(np.linalg.eigvalsh(head.cov) > 0)
+    pb = body.capsules(np.stack([theta, theta]))[0]
+    assert pb.shape == (2, S, 3)
+
+
+def _mutated(raw, fn):
+    data = copy.deepcopy(raw)
+    fn(data)
+    return data
+
+
+def _link(data, name):
+    return next(lk for lk in data["links"] if lk["name"] == name)
+
+
+@pytest.mark.parametrize("mutate, expected", [
+    (lambda d: _link(d, "l_hand").__setitem__("parent", "l_arm"),
+     "link 'l_hand' names unknown parent 'l_arm'"),
+    (lambda d: _link(d, "torso").__setitem__("parent", None), "link 'torso' has no parent"),
+    (lambda d: _link(d, "l_forearm").__setitem__("joint", "slider"),
+     "link 'l_forearm' field 'joint': unknown joint type 'slider'"),
+    (lambda d: _link(d, "l_forearm").__setitem__("limits", [[0, 1], [0, 1], [0, 1]]),
+     "link 'l_forearm' field 'limits'"),
+    (lambda d: _link(d, "head").__setitem__("limits", [[0, 1]]), "link 'head' field 'limits'"),
+    (lambda d: _link(d, "l_shin").pop("axis"), "link 'l_shin' field 'axis'"),
+    (lambda d: _link(d, "r_foot").__setitem__("colour", "purple"), "link 'r_foot' field 'colour'"),
+    (lambda d: d["joints"][0].__setitem__("link", "nope"), "joint 'pelvis' names unknown link 'nope'"),
+])
+def test_errors_name_link_and_field(raw, mutate, expected):
+    with pytest.raises(BodyModelError, match=expected) as info:
+        body_model_from_dict(_mutated(raw, mutate), source="body_model.yaml")
+    assert str(info.value).startswith("body_model.yaml: ")
+    assert isinstance(info.value, ArtrackError)
+
+
+def test_error_names_file(tmp_path, raw):
+    path = tmp_path / "body_model.yaml"
+    bad = _mutated(raw, lambda d: _link(d, "l_hand").__setitem__("parent", "l_arm"))
+    path.write_text(yaml.safe_dump(bad))
+    with pytest.raises(BodyModelError, match=r"body_model\.yaml: link 'l_hand' names unknown parent 'l_arm'"):
+        load_body_model(path)
+    with pytest.raises(BodyModelError, match="missing.yaml"):
+        load_body_model(tmp_path / "missing.yaml")
