@@ -1,0 +1,1013 @@
+"""Per-camera 2-D blob tracker: background model, MAP pixel classification with
+priors, support map, blob statistics, start-up (ALGORITHMS.md §1, "2-D blobs").
+
+Pixel features. Every pixel (i, j) has the observation ``o = (u, v, r, g, I)``:
+image position (u = column, v = row, px, (0, 0) the centre of the top-left
+pixel) and colour as normalised chroma ``r = R / S``, ``g = G / S`` and intensity
+``I = S / 765`` with ``S = R + G + B`` (``colour_features``). Chroma is insensitive
+to shading; intensity separates e.g. dark hair from skin of the same chroma.
+
+Background (``BackgroundModel``). A per-pixel Gaussian in B, G, R (mean and a
+diagonal variance, grey levels) at the working resolution. Start-up choice:
+the first ``background_seed_frames`` samples (one every ``background_seed_stride``
+frames) are kept per pixel in sorted order (an insertion sorting network of
+element-wise min/max, cheap on uint8 images); the background is their temporal
+median and its spread 1.4826 x the median absolute deviation (floored at
+``background_min_sigma``), both of which ignore a person who covers a pixel in
+fewer than half of the samples. While seeding, the foreground is the large
+deviation from the running median of the samples so far (the current frame
+included, so a person's old position leaves no ghost once three samples exist).
+Frame 0 alone has no foreground: a person who never moves during the seed is
+indistinguishable from the room and becomes background (see "weak points").
+After seeding, a pixel is foreground when its Mahalanobis distance to the
+background exceeds ``background_threshold``; the mask is cleaned by a small
+median filter. The model adapts at ``background_learning_rate`` only where the
+pixel is background; pixels in the support of a tracked blob never adapt; other
+("unexplained") foreground adapts at the tiny ``background_ghost_rate`` and is
+taken into the background once it has stayed unchanged for
+``background_static_frames`` frames (an object that stopped for good). Ghosts
+(where the seed absorbed a person who then left: the room reappears as
+"foreground") are removed sooner: any foreground region unchanged for
+``background_ghost_frames`` frames whose pixels on the silhouette have
+``background_ghost_edge_ratio`` times stronger gradients in the background model
+than in the image (the outline of something that has left, not of something
+that is there) becomes background at once, even when a label claimed it.
+
+Blob classes. Each tracked label k is a Gaussian over ``o`` with a spatial part
+(mean (2,), covariance (2, 2), px) and a colour part (mean (3,), covariance
+(3, 3)); the colour part is shared by the labels of one colour class (e.g. head
+and hands: 'skin'; thighs and shins: 'trousers'). 'skin' starts from a
+configured model in normalised chroma; a class without a default is bootstrapped
+robustly (median / MAD, then trimmed mean and covariance) from the foreground in
+its labels' prior cores (``colour_core_sigma``) on its first labelled frame. All
+classes then follow their labelled core pixels that fit the model
+(``colour_learn_gate``) at ``colour_learning_rate``, so ghosts and neighbours
+cannot widen them. Each foreground pixel inside a label's gate gets the MAP label
+
+    Γ_ij = argmax_k  log N(c_ij; μ_c(k), Σ_c(k)) + w · log(c_k · N((u, v); m_k, S_k))
+
+where the second term is the class prior ``Pr(k at ij)``: with feedback, the
+projected 3-D prior (Prior2D mean and covariance, the Gaussian scaled by its
+confidence c_k floored at ``prior_min_confidence``, optionally widened by
+``prior_confidence_inflation``, w = ``prior_weight``; a prior whose visibility is
+not VISIBLE suppresses its label in this view); without a prior, 2-D temporal
+smoothness (the previous frame's blob Gaussian, constant-velocity predicted,
+inflated by ``temporal_inflation`` and ``temporal_motion_px``, c_k = 1,
+w = ``temporal_weight``). Labels only compete inside their gates (``roi_sigma``
+spatial Mahalanobis distance, ``colour_gate`` in colour); a foreground pixel
+outside every gate stays unlabelled (−1), so a look-alike far from the
+prediction (another person's hand) does not steal the label. Classification
+runs only on the foreground pixels inside the rectangles bounding the gates.
+Each label's statistics (mean, covariance, colour mean and covariance, pixel
+count) are then re-estimated from its pixels (8-connected pieces smaller than
+``min_component_fraction`` of its largest piece are dropped first: mixed rim
+pixels of neighbouring parts); a label with fewer than ``min_blob_pixels``
+pixels is not reported ("not seen in this view").
+
+Start-up (no priors and no blob tracked in 2-D): the tracker reports a
+``foreground`` blob (Gaussian of all foreground pixels) and up to
+``startup_max_skin_blobs`` ``skin`` blobs (connected components of skin-coloured
+foreground pixels, largest first) for the 3-D stage to triangulate, once the
+seed holds ``startup_min_seed_samples`` samples; labelled tracking starts with
+the first priors and falls back to start-up when priors stop and every label has
+been unseen for more than ``temporal_max_missed`` frames.
+
+Weak points: a person standing still through the whole seed is background
+until they move (the ghost they leave then heals within about
+``background_ghost_frames`` frames where its outline is clear, else after
+``background_static_frames``); there is no shadow model; clothing or floors with
+skin-like chroma (khaki, beige tiles) pass the skin model (components larger
+than ``startup_skin_max_fraction`` of the foreground are skipped at start-up);
+the spatial gates trust the prior: a prediction off by more than ``roi_sigma``
+sigmas of the part's projected extent finds nothing, or a neighbour.
+
+All processing is deterministic (no randomness).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+from .types import VISIBLE, Blob2D, Prior2D
+
+__all__ = [
+    "FOREGROUND",
+    "SKIN",
+    "BackgroundModel",
+    "BlobTracker2D",
+    "BlobTrackerConfig",
+    "ColourModel",
+    "benchmark",
+    "colour_features",
+]
+
+#: Start-up class: the whole foreground silhouette.
+FOREGROUND = "foreground"
+#: Start-up class (and colour class): a connected region of skin-coloured foreground.
+SKIN = "skin"
+
+_F32 = np.float32
+_GHOST_EVERY = 8  # frames between background updates at the ghost rate (amortised)
+_ONES13 = np.ones((1, 3), _F32)
+
+
+# =========================================================================== config
+@dataclass
+class BlobTrackerConfig:
+    """Tunables of :class:`BlobTracker2D` (mirrored, with the same docs, in config/blob_features.yaml).
+
+    Pixel quantities are in pixels of the full-resolution input image unless noted.
+    """
+
+    # ---- background model (per-pixel Gaussian in B, G, R)
+    #: number of samples in the start-up temporal median that seeds the background
+    background_seed_frames: int = 11
+    #: one seed sample every this many frames (the seed spans frames*stride frames)
+    background_seed_stride: int = 4
+    #: adaptation rate of the background mean/variance where a pixel is background (per frame)
+    background_learning_rate: float = 0.02
+    #: adaptation rate where a pixel is foreground but in no tracked blob's support (0 = never)
+    background_ghost_rate: float = 0.002
+    #: a foreground pixel in no tracked blob's support, unchanged for this many frames, becomes
+    #: background at once (heals ghosts; 0 = never)
+    background_static_frames: int = 45
+    #: a foreground region unchanged for this many frames is tested for being a ghost (0 = never)
+    background_ghost_frames: int = 8
+    #: ... and is a ghost (becomes background at once) when its silhouette edges are this many
+    #: times stronger in the background model than in the image (0 = never)
+    background_ghost_edge_ratio: float = 1.5
+    #: Mahalanobis distance (sigmas, over B, G, R) to the background above which a pixel is foreground
+    background_threshold: float = 5.0
+    #: floor of the per-pixel, per-channel background sigma, grey levels
+    background_min_sigma: float = 3.0
+    #: median-filter aperture applied to the foreground mask, px (odd; <= 1 disables)
+    foreground_median: int = 3
+
+    # ---- colour features and colour classes
+    #: colour feature of the class likelihood: 'rgI' (chroma r, g and intensity) or 'rg' (chroma only)
+    colour_features: str = "rgI"
+    #: colour gate: Mahalanobis distance (sigmas) in colour beyond which a pixel cannot join a class
+    colour_gate: float = 3.5
+    #: rate at which a colour class model follows the statistics of its labelled pixels (per frame)
+    colour_learning_rate: float = 0.2
+    #: sigma floor added to the chroma (r, g) variances of every colour model
+    colour_min_sigma_chroma: float = 0.01
+    #: sigma floor added to the intensity variance of every colour model
+    colour_min_sigma_intensity: float = 0.03
+    #: default skin model: mean (r, g, I) of normalised chroma and intensity
+    skin_mean: tuple[float, float, float] = (0.42, 0.31, 0.55)
+    #: default skin model: sigmas of (r, g, I)
+    skin_sigma: tuple[float, float, float] = (0.035, 0.025, 0.22)
+    #: default skin model: correlation of chroma r and g
+    skin_rg_correlation: float = 0.0
+    #: pixels darker than this intensity (0..1) are never skin (hair, deep shadow)
+    skin_min_intensity: float = 0.25
+    #: sigmas of (r, g, I) of the broad start model of a colour class without a default (mean 1/3, 1/3, 0.5)
+    unknown_colour_sigma: tuple[float, float, float] = (0.2, 0.2, 0.5)
+    #: colour models are bootstrapped (robustly) and learned only from pixels within this many sigmas
+    #: of their label's spatial prior (the part's core, least mixed with neighbours and ghosts)
+    colour_core_sigma: float = 2.0
+    #: ... and only from pixels within this colour Mahalanobis distance (sigmas) of the current model
+    colour_learn_gate: float = 2.5
+
+    # ---- class priors: feedback and temporal smoothness
+    #: half-size of a label's region of interest, in sigmas of its spatial prior (also its spatial gate)
+    roi_sigma: float = 3.5
+    #: exponent w of the projected 3-D prior in the pixel class prior (confidence x Gaussian)^w
+    prior_weight: float = 1.0
+    #: confidences are floored at this value (a weak prior still counts, a little)
+    prior_min_confidence: float = 0.05
+    #: a prior's covariance is multiplied by 1 + this x (1 - confidence) (0: the projected extent as is)
+    prior_confidence_inflation: float = 0.0
+    #: sigma floor (isotropic, px) added to every spatial prior
+    min_sigma_px: float = 1.5
+    #: exponent w of the temporal (previous-blob) Gaussian when a label has no prior
+    temporal_weight: float = 1.0
+    #: previous blob covariance multiplier for the temporal prior
+    temporal_inflation: float = 1.5
+    #: expected per-frame motion, sigma in px, added to the temporal prior per missed frame
+    temporal_motion_px: float = 6.0
+    #: fraction of the last frame-to-frame displacement extrapolated (0 = static, 1 = constant velocity)
+    temporal_velocity: float = 1.0
+    #: frames a label may go unseen before its temporal prior is dropped
+    temporal_max_missed: int = 5
+
+    # ---- blobs and start-up
+    #: blobs with fewer pixels are not reported (full-resolution px)
+    min_blob_pixels: int = 20
+    #: a label's 8-connected pieces smaller than this fraction of its largest piece are dropped (0 = keep all)
+    min_component_fraction: float = 0.1
+    #: at start-up, report at most this many skin blobs (largest first)
+    startup_max_skin_blobs: int = 3
+    #: at start-up, skip skin components larger than this fraction of the foreground (clothing)
+    startup_skin_max_fraction: float = 0.35
+    #: report no start-up blobs before the background seed holds this many samples (the running
+    #: median of fewer samples cannot yet tell a person's old place from the new one)
+    startup_min_seed_samples: int = 3
+
+    # ---- speed
+    #: working resolution as a fraction of the input (1 = full; 0.5 halves width and height)
+    work_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        where = "blob tracker config"
+
+        def bad(name: str, what: str) -> InputError:
+            return InputError(f"{where}: field '{name}' {what} (got {getattr(self, name)!r})")
+
+        for name in ("skin_mean", "skin_sigma", "unknown_colour_sigma"):
+            try:
+                v = tuple(float(x) for x in getattr(self, name))
+            except (TypeError, ValueError):
+                raise bad(name, "must be three numbers") from None
+            if len(v) != 3 or not all(math.isfinite(x) for x in v):
+                raise bad(name, "must be three finite numbers")
+            setattr(self, name, v)
+        for name in ("skin_sigma", "unknown_colour_sigma"):
+            if min(getattr(self, name)) <= 0:
+                raise bad(name, "must be positive")
+        positive = ("background_threshold", "background_min_sigma", "colour_gate", "colour_min_sigma_chroma",
+                    "colour_core_sigma", "colour_learn_gate",
+                    "colour_min_sigma_intensity", "roi_sigma", "prior_weight", "prior_min_confidence",
+                    "min_sigma_px", "temporal_weight", "temporal_inflation", "work_scale")
+        for name in positive:
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise bad(name, "must be a positive number")
+        for name in ("background_learning_rate", "background_ghost_rate", "colour_learning_rate"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0:
+                raise bad(name, "must be in [0, 1]")
+        for name in ("background_seed_frames", "background_seed_stride"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise bad(name, "must be a positive integer")
+        for name in ("min_blob_pixels", "startup_max_skin_blobs", "temporal_max_missed", "foreground_median",
+                     "background_static_frames", "background_ghost_frames", "startup_min_seed_samples"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
+                raise bad(name, "must be a non-negative integer")
+        if self.colour_features not in ("rgI", "rg"):
+            raise bad("colour_features", "must be 'rgI' or 'rg'")
+        if self.work_scale > 1.0:
+            raise bad("work_scale", "must be in (0, 1]")
+        if not -0.95 <= self.skin_rg_correlation <= 0.95:
+            raise bad("skin_rg_correlation", "must be in [-0.95, 0.95]")
+        non_negative = ("skin_min_intensity", "startup_skin_max_fraction", "temporal_velocity",
+                        "temporal_motion_px", "min_component_fraction", "background_ghost_edge_ratio",
+                        "prior_confidence_inflation")
+        for name in non_negative:
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise bad(name, "must be a non-negative number")
+
+
+# =========================================================================== features
+def colour_features(bgr: np.ndarray) -> np.ndarray:
+    """Colour features (r, g, I) of BGR pixels.
+
+    bgr: (..., 3) uint8 (or float grey levels 0..255). Returns (..., 3) float32: normalised
+    chroma r = R/S, g = G/S and intensity I = S/765 in [0, 1], S = R + G + B (S < 1 taken as 1).
+    """
+    f = np.asarray(bgr, dtype=_F32)
+    s = f[..., 0] + f[..., 1] + f[..., 2]
+    inv = 1.0 / np.maximum(s, 1.0)
+    out = np.empty(f.shape, _F32)
+    out[..., 0] = f[..., 2] * inv
+    out[..., 1] = f[..., 1] * inv
+    out[..., 2] = s * _F32(1.0 / 765.0)
+    return out
+
+
+@dataclass
+class ColourModel:
+    """Gaussian colour model of one colour class over (r, g, I): mean (3,), cov (3, 3).
+
+    ``learned`` is False while the model is still the configured default (replaced, not
+    blended, by the first statistics); ``min_intensity`` rejects darker pixels outright.
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    learned: bool = False
+    min_intensity: float = 0.0
+
+    def whitening(self, config: BlobTrackerConfig) -> tuple[np.ndarray, float]:
+        """(A (3, 4) float32, log|Σ|): ``A @ [c; 1]`` is the whitened residual, so that
+        |A [c; 1]|² is the squared Mahalanobis distance of colour c (variance floors added;
+        the intensity row is zero in 'rg' mode, where log|Σ| is that of the chroma marginal)."""
+        floor = np.array([config.colour_min_sigma_chroma] * 2 + [config.colour_min_sigma_intensity]) ** 2
+        cov = np.asarray(self.cov, float) + np.diag(floor)
+        n = 2 if config.colour_features == "rg" else 3
+        L = np.linalg.cholesky(cov[:n, :n])
+        Linv = np.linalg.inv(L)
+        A = np.zeros((3, 4))
+        A[:n, :n] = Linv
+        A[:n, 3] = -Linv @ np.asarray(self.mean, float)[:n]
+        return A.astype(_F32), 2.0 * float(np.sum(np.log(np.diag(L))))
+
+    def distance2(self, colours: np.ndarray, config: BlobTrackerConfig) -> np.ndarray:
+        """Squared Mahalanobis distance (N,) of colours (N, 3) (intensity below the minimum: inf)."""
+        A, _ = self.whitening(config)
+        c = np.asarray(colours, _F32).reshape(-1, 3)
+        z = c @ A[:, :3].T + A[:, 3]
+        d2 = np.einsum("ij,ij->i", z, z)
+        if self.min_intensity > 0:
+            d2[c[:, 2] < self.min_intensity] = np.inf
+        return d2
+
+
+def _skin_model(config: BlobTrackerConfig) -> ColourModel:
+    sr, sg, si = config.skin_sigma
+    rho = config.skin_rg_correlation
+    cov = np.array([[sr * sr, rho * sr * sg, 0.0], [rho * sr * sg, sg * sg, 0.0], [0.0, 0.0, si * si]])
+    return ColourModel(np.array(config.skin_mean, float), cov, False, config.skin_min_intensity)
+
+
+def _unknown_model(config: BlobTrackerConfig) -> ColourModel:
+    cov = np.diag(np.square(config.unknown_colour_sigma))
+    return ColourModel(np.array([1 / 3, 1 / 3, 0.5]), cov, False, 0.0)
+
+
+# =========================================================================== background
+def _insert_sorted(stack: list[np.ndarray], x: np.ndarray) -> None:
+    """Insert image x into a per-pixel sorted list of images (in place), by min/max swaps."""
+    carry = x
+    stack.append(x)
+    for i in range(len(stack) - 2, -1, -1):
+        stack[i + 1] = cv2.max(stack[i], carry)
+        carry = cv2.min(stack[i], carry)
+    stack[0] = carry
+
+
+def _median_of_sorted(stack: list[np.ndarray]) -> np.ndarray:
+    """Per-pixel median (float32) of a per-pixel sorted image list."""
+    n = len(stack)
+    if n % 2:
+        return stack[n // 2].astype(_F32)
+    return cv2.addWeighted(stack[n // 2 - 1], 0.5, stack[n // 2], 0.5, 0.0, dtype=cv2.CV_32F)
+
+
+class BackgroundModel:
+    """Per-pixel Gaussian background in B, G, R (module docstring, "Background").
+
+    ``mean``: (H, W, 3) float32 grey levels; ``var``: (H, W, 3) float32 grey levels²,
+    kept floored at ``background_min_sigma``² (None until the seed is complete, see ``ready``);
+    ``static``: (H, W) uint16 frames each unexplained foreground pixel has stayed unchanged.
+    """
+
+    def __init__(self, config: BlobTrackerConfig):
+        self.config = config
+        self.frames = 0
+        self.seed: list[np.ndarray] = []
+        self.mean: np.ndarray | None = None
+        self.var: np.ndarray | None = None
+        self.static: np.ndarray | None = None
+        self._floor: np.ndarray | None = None
+        self._diff2: np.ndarray | None = None
+        self._previous: np.ndarray | None = None
+
+    @property
+    def ready(self) -> bool:
+        """True once the seed median has become the per-pixel Gaussian."""
+        return self.var is not None
+
+    def foreground(self, image: np.ndarray, image_f: np.ndarray) -> np.ndarray:
+        """Foreground mask (H, W) bool of one frame (uint8 (H, W, 3) and its float32 copy).
+
+        While seeding, the frame is added to the seed (every ``background_seed_stride``
+        frames) and compared with the running median at the floor sigma.
+        """
+        cfg = self.config
+        thr2 = cfg.background_threshold**2
+        if not self.ready:
+            if self.frames % cfg.background_seed_stride == 0:
+                _insert_sorted(self.seed, image)
+            self.frames += 1
+            median = _median_of_sorted(self.seed)
+            diff = cv2.subtract(image_f, median)
+            d2 = cv2.transform(cv2.multiply(diff, diff), _ONES13)
+            fg = d2 > thr2 * cfg.background_min_sigma**2
+            if len(self.seed) >= cfg.background_seed_frames:
+                self._finish_seed(median)
+            return fg
+        self.frames += 1
+        diff = cv2.subtract(image_f, self.mean)
+        self._diff2 = cv2.multiply(diff, diff)
+        d2 = cv2.transform(cv2.divide(self._diff2, self.var), _ONES13)
+        return d2 > thr2
+
+    def _finish_seed(self, median: np.ndarray) -> None:
+        """Seed -> Gaussian: mean = median, sigma = 1.4826 MAD (floored)."""
+        med_u8 = np.clip(np.rint(median), 0, 255).astype(np.uint8)
+        dev: list[np.ndarray] = []
+        for s in self.seed:
+            _insert_sorted(dev, cv2.absdiff(s, med_u8))
+        mad = _median_of_sorted(dev)
+        self.mean = median
+        self._floor = np.full(median.shape, self.config.background_min_sigma**2, _F32)
+        self.var = cv2.max(np.square(1.4826 * mad).astype(_F32), self._floor)
+        self.static = np.zeros(median.shape[:2], np.uint16)
+        self.seed = []
+
+    def update(self, image: np.ndarray, image_f: np.ndarray, background: np.ndarray,
+               unexplained: np.ndarray) -> None:
+        """Adapt the model after ``foreground`` (module docstring, "Background").
+
+        image: (H, W, 3) uint8 and image_f its float32 copy; background: (H, W) bool pixels
+        classified background (rate ``background_learning_rate``); unexplained: (H, W) bool
+        foreground pixels in no tracked blob's support (rate ``background_ghost_rate``; taken
+        into the background at once after ``background_static_frames`` unchanged frames).
+        Any foreground region unchanged for ``background_ghost_frames`` frames that is a
+        ghost (``_ghosts``) is taken into the background at once.
+        """
+        previous, self._previous = self._previous, image
+        if not self.ready or self._diff2 is None:
+            return
+        cfg = self.config
+        # the (tiny) ghost rate is applied every _GHOST_EVERY frames, scaled: its masks are scattered
+        ghost_rate = 0.0
+        if self.frames % _GHOST_EVERY == 0:
+            ghost_rate = 1.0 - (1.0 - cfg.background_ghost_rate) ** _GHOST_EVERY
+        for mask, rate in ((background, cfg.background_learning_rate), (unexplained, ghost_rate)):
+            if rate <= 0:
+                continue
+            m = mask.view(np.uint8)
+            x, y, w, h = cv2.boundingRect(m)
+            if w == 0 or h == 0:
+                continue
+            box = (slice(y, y + h), slice(x, x + w))
+            cv2.accumulateWeighted(self._diff2[box], self.var[box], rate, m[box])
+            cv2.accumulateWeighted(image_f[box], self.mean[box], rate, m[box])
+            cv2.max(self.var[box], self._floor[box], dst=self.var[box])
+        self._diff2 = None
+        if previous is None or previous.shape != image.shape:
+            return
+        # unchanged since the last frame: luma-weighted |change| within 2/3 x threshold x floor sigma
+        change = cv2.cvtColor(cv2.absdiff(image, previous), cv2.COLOR_BGR2GRAY)
+        still = ~background & (change <= (2.0 / 3.0) * cfg.background_threshold * cfg.background_min_sigma)
+        self.static += still
+        self.static *= still
+        absorb = np.zeros(still.shape, bool)
+        if cfg.background_static_frames > 0:
+            absorb |= (self.static >= cfg.background_static_frames) & unexplained
+        if cfg.background_ghost_frames > 0 and cfg.background_ghost_edge_ratio > 0:
+            candidates = self.static >= cfg.background_ghost_frames
+            if candidates.any():
+                absorb |= self._ghosts(candidates, ~background, image_f)
+        if absorb.any():
+            self.mean[absorb] = image_f[absorb]
+            self.static[absorb] = 0
+
+    def _ghosts(self, candidates: np.ndarray, fg: np.ndarray, image_f: np.ndarray) -> np.ndarray:
+        """(H, W) bool: the 8-connected regions of ``candidates`` (static foreground) whose
+        pixels on the foreground silhouette have a mean gradient magnitude (Sobel, grey) in the
+        background model above ``background_ghost_edge_ratio`` x that in the image: the outline
+        of something that has left (a ghost), not of something that is there."""
+        out = np.zeros(candidates.shape, bool)
+        H, W = candidates.shape
+        x, y, w, h = cv2.boundingRect(candidates.view(np.uint8))
+        x0, y0, x1, y1 = max(0, x - 2), max(0, y - 2), min(W, x + w + 2), min(H, y + h + 2)
+        box = (slice(y0, y1), slice(x0, x1))
+        n, comp = cv2.connectedComponents(candidates[box].view(np.uint8), connectivity=8)
+        fgb = np.ascontiguousarray(fg[box]).view(np.uint8)
+        rim = (fgb > cv2.erode(fgb, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)) & (comp > 0)
+        if not rim.any():
+            return out
+
+        def gradient(bgr: np.ndarray) -> np.ndarray:
+            grey = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2GRAY)
+            return cv2.magnitude(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+
+        ids = comp[rim]
+        e_img = np.bincount(ids, gradient(image_f[box])[rim], minlength=n)
+        e_bg = np.bincount(ids, gradient(self.mean[box])[rim], minlength=n)
+        count = np.bincount(ids, minlength=n)
+        ghost = (count >= 5) & (e_bg > self.config.background_ghost_edge_ratio * e_img + 1e-6)
+        ghost[0] = False
+        if ghost.any():
+            out[box] = ghost[comp]
+        return out
+
+
+# =========================================================================== tracker
+@dataclass
+class _Track:
+    """2-D temporal memory of one label: last blob (work px), velocity (px/frame), frames missed."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    missed: int = 0
+
+
+@dataclass
+class _ClassModel:
+    """One label's class for one frame (work px): spatial prior and colour model."""
+
+    index: int
+    mean: np.ndarray  # (2,)
+    cov: np.ndarray  # (2, 2)
+    weight: float
+    colour: ColourModel
+    log_confidence: float = 0.0  # log of the prior's (floored) confidence; 0 for temporal priors
+    rect: tuple[int, int, int, int] = (0, 0, 0, 0)  # x0, y0, x1, y1 (exclusive)
+
+
+def _rect(mean: np.ndarray, cov: np.ndarray, k: float, width: int, height: int) -> tuple[int, int, int, int]:
+    """Pixel rectangle bounding the k-sigma ellipse of a 2-D Gaussian, clipped to the image."""
+    hx, hy = k * math.sqrt(max(cov[0, 0], 0.0)), k * math.sqrt(max(cov[1, 1], 0.0))
+    x0, x1 = max(0, math.floor(mean[0] - hx)), min(width, math.ceil(mean[0] + hx) + 1)
+    y0, y1 = max(0, math.floor(mean[1] - hy)), min(height, math.ceil(mean[1] + hy) + 1)
+    return x0, y0, max(x0, x1), max(y0, y1)
+
+
+class BlobTracker2D:
+    """One camera's 2-D blob tracker (module docstring; ALGORITHMS.md §1, "2-D blobs").
+
+    camera_name: used in error messages; labels: the body-model blob labels tracked
+    (e.g. 'head', 'l_hand'); colour_classes: label -> colour class ('skin', 'shirt',
+    'trousers', ...; a label without one is its own class); config: tunables.
+
+    ``step(image_bgr, priors)`` processes one frame. After it, ``support_map`` (H, W)
+    int16 holds, per pixel, an index into ``support_labels`` (−1: background or
+    unassigned) and ``foreground_mask`` (H, W) bool the foreground, both at the input
+    resolution.
+    """
+
+    def __init__(
+        self,
+        camera_name: str,
+        labels: list[str],
+        colour_classes: dict[str, str] | None = None,
+        config: BlobTrackerConfig | None = None,
+    ):
+        self.camera_name = str(camera_name)
+        self.labels = [str(x) for x in labels]
+        if len(set(self.labels)) != len(self.labels):
+            raise InputError(f"camera '{self.camera_name}': duplicate blob labels {self.labels}")
+        if FOREGROUND in self.labels or SKIN in self.labels:
+            raise InputError(f"camera '{self.camera_name}': '{FOREGROUND}'/'{SKIN}' are start-up classes, "
+                             "not link labels")
+        self.colour_classes = {lab: str((colour_classes or {}).get(lab, lab)) for lab in self.labels}
+        self.config = config or BlobTrackerConfig()
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget everything: background, colour models, temporal memory."""
+        self.background = BackgroundModel(self.config)
+        self.colour_models: dict[str, ColourModel] = {}
+        self.tracks: dict[str, _Track] = {}
+        self.image_size: tuple[int, int] | None = None  # (W, H) input
+        self.work_size: tuple[int, int] | None = None  # (W, H) working resolution
+        self.support_labels: list[str] = []
+        self.mode = "startup"
+        self._support_work: np.ndarray | None = None
+        self._fg_work: np.ndarray | None = None
+        self._support_full: np.ndarray | None = None
+        self._fg_full: np.ndarray | None = None
+
+    def colour_model(self, colour_class: str) -> ColourModel:
+        """Current colour model of a colour class (the configured default until learned)."""
+        m = self.colour_models.get(colour_class)
+        if m is None:
+            m = _skin_model(self.config) if colour_class == SKIN else _unknown_model(self.config)
+            self.colour_models[colour_class] = m
+        return m
+
+    @property
+    def support_map(self) -> np.ndarray:
+        """(H, W) int16 at the input resolution: index into ``support_labels``, −1 = none."""
+        if self._support_work is None:
+            raise InputError(f"camera '{self.camera_name}': no frame processed yet")
+        if self._support_full is None:
+            self._support_full = self._to_full(self._support_work)
+        return self._support_full
+
+    @property
+    def foreground_mask(self) -> np.ndarray:
+        """(H, W) bool at the input resolution: the last frame's foreground."""
+        if self._fg_work is None:
+            raise InputError(f"camera '{self.camera_name}': no frame processed yet")
+        if self._fg_full is None:
+            self._fg_full = self._to_full(self._fg_work.view(np.uint8)).view(bool)
+        return self._fg_full
+
+    def _to_full(self, a: np.ndarray) -> np.ndarray:
+        if self.work_size == self.image_size:
+            return a
+        return cv2.resize(a, self.image_size, interpolation=cv2.INTER_NEAREST)
+
+    # ------------------------------------------------------------------ coordinates
+    def _scale(self) -> tuple[float, float]:
+        (W, H), (w, h) = self.image_size, self.work_size
+        return w / W, h / H
+
+    def _to_work(self, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sx, sy = self._scale()
+        D = np.diag([sx, sy])
+        return D @ (np.asarray(mean, float) + 0.5) - 0.5, D @ np.asarray(cov, float) @ D
+
+    def _from_work(self, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sx, sy = self._scale()
+        D = np.diag([1.0 / sx, 1.0 / sy])
+        return D @ (np.asarray(mean, float) + 0.5) - 0.5, D @ np.asarray(cov, float) @ D
+
+    def _min_pixels(self) -> int:
+        sx, sy = self._scale()
+        return max(1, int(math.ceil(self.config.min_blob_pixels * sx * sy)))
+
+    # ------------------------------------------------------------------ step
+    def step(self, image_bgr: np.ndarray, priors: list[Prior2D] | None = None) -> list[Blob2D]:
+        """Process one frame.
+
+        image_bgr: (H, W, 3) uint8 BGR. priors: the projected 3-D predictions for this
+        frame (one per label; labels not tracked here are ignored) or None (no feedback).
+        Returns the blobs seen, label order for tracked labels; at start-up
+        [``foreground``, ``skin`` (largest first) ...]. Means/covariances in input pixels.
+        """
+        img = np.asarray(image_bgr)
+        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            raise InputError(f"camera '{self.camera_name}': image must be (H, W, 3) uint8 BGR, "
+                             f"got {img.dtype} {img.shape}")
+        size = (img.shape[1], img.shape[0])
+        if self.image_size is not None and size != self.image_size:
+            self.reset()  # the stream changed resolution: start again
+        if self.image_size is None:
+            s = self.config.work_scale
+            self.image_size = size
+            self.work_size = (max(1, round(size[0] * s)), max(1, round(size[1] * s)))
+        if self.work_size != self.image_size:
+            img = cv2.resize(img, self.work_size, interpolation=cv2.INTER_AREA)
+        img = np.ascontiguousarray(img)
+        img_f = img.astype(_F32)
+        self._support_full = self._fg_full = None
+
+        fg = self.background.foreground(img, img_f)
+        k = self.config.foreground_median
+        if k > 1:
+            fg = cv2.medianBlur(fg.view(np.uint8), k | 1).view(bool)
+        self._fg_work = fg
+
+        models = self._class_models(priors)
+        if models is None:
+            self.mode = "startup"
+            bg = self.background
+            if bg.ready or len(bg.seed) >= self.config.startup_min_seed_samples:
+                blobs, explained = self._startup(img, fg)
+            else:
+                blobs, explained = [], np.zeros_like(fg)
+                self._support_work = np.full(fg.shape, -1, np.int16)
+                self.support_labels = []
+        else:
+            self.mode = "tracking"
+            blobs, explained = self._track(img, fg, models)
+        self.background.update(img, img_f, ~fg, fg & ~explained)
+        return blobs
+
+    # ------------------------------------------------------------------ class priors
+    def _class_models(self, priors: list[Prior2D] | None) -> list[_ClassModel] | None:
+        """The per-label class priors of this frame (work px), or None for start-up mode."""
+        cfg = self.config
+        have_priors = bool(priors)
+        if not have_priors and not self.tracks:
+            return None
+        by_label: dict[str, Prior2D] = {}
+        for p in priors or ():
+            if p.label in self.colour_classes:
+                by_label[p.label] = p
+        W, H = self.work_size
+        models: list[_ClassModel] = []
+        floor = np.eye(2) * cfg.min_sigma_px**2 * self._scale()[0] * self._scale()[1]
+        for i, label in enumerate(self.labels):
+            colour = self.colour_model(self.colour_classes[label])
+            p = by_label.get(label)
+            if p is not None:
+                mean = np.asarray(p.mean, float).reshape(-1)
+                cov = np.asarray(p.cov, float).reshape(-1)
+                if p.visibility != VISIBLE or mean.size != 2 or cov.size != 4:
+                    continue
+                if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
+                    continue
+                conf = float(p.confidence) if math.isfinite(float(p.confidence)) else 0.0
+                conf = min(max(conf, cfg.prior_min_confidence), 1.0)
+                mean, cov = self._to_work(mean, cov.reshape(2, 2))
+                cov = 0.5 * (cov + cov.T) * (1.0 + cfg.prior_confidence_inflation * (1.0 - conf)) + floor
+                weight = cfg.prior_weight
+                log_conf = math.log(conf)
+            else:
+                tr = self.tracks.get(label)
+                if tr is None:
+                    continue
+                steps = tr.missed + 1
+                mean = tr.mean + cfg.temporal_velocity * tr.velocity * steps
+                sx, sy = self._scale()
+                motion = (cfg.temporal_motion_px**2) * steps * np.diag([sx * sx, sy * sy])
+                cov = cfg.temporal_inflation * tr.cov + motion + floor
+                weight = cfg.temporal_weight
+                log_conf = 0.0
+            if np.linalg.det(cov) <= 0:
+                continue
+            m = _ClassModel(i, mean, cov, weight, colour, log_conf)
+            m.rect = _rect(mean, cov, cfg.roi_sigma, W, H)
+            if m.rect[2] > m.rect[0] and m.rect[3] > m.rect[1]:
+                models.append(m)
+        return models
+
+    # ------------------------------------------------------------------ tracking
+    def _track(self, img: np.ndarray, fg: np.ndarray, models: list[_ClassModel]
+               ) -> tuple[list[Blob2D], np.ndarray]:
+        """MAP classification inside the ROIs, statistics, memory and colour updates.
+
+        Returns the blobs and the (H, W) bool mask of labelled pixels (the support)."""
+        cfg = self.config
+        W, H = self.work_size
+        support = np.full((H, W), -1, np.int16)
+        self.support_labels = list(self.labels)
+        self._support_work = support
+        stats: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, int]] = {}
+        core_colours: dict[str, list[np.ndarray]] = {}
+        if models:
+            # the foreground pixels inside the union of the ROIs, as lists (N,)
+            x0 = min(m.rect[0] for m in models)
+            y0 = min(m.rect[1] for m in models)
+            x1 = max(m.rect[2] for m in models)
+            y1 = max(m.rect[3] for m in models)
+            ys, xs = np.nonzero(fg[y0:y1, x0:x1])
+            ys += y0
+            xs += x0
+            feat = colour_features(img[ys, xs])
+            u, v = xs.astype(_F32), ys.astype(_F32)
+            best = np.full(xs.size, -np.inf, _F32)
+            lab = np.full(xs.size, -1, np.int16)
+            sels, ds2s = [], []
+            gs2, gc2 = cfg.roi_sigma**2, cfg.colour_gate**2
+            for m in models:
+                inside = (xs >= m.rect[0]) & (xs < m.rect[2]) & (ys >= m.rect[1]) & (ys < m.rect[3])
+                sel = np.flatnonzero(inside)
+                P = np.linalg.inv(m.cov).astype(_F32)
+                du, dv = u[sel] - _F32(m.mean[0]), v[sel] - _F32(m.mean[1])
+                ds2 = P[0, 0] * du * du + 2 * P[0, 1] * du * dv + P[1, 1] * dv * dv
+                gated = ds2 <= gs2  # the spatial gate: the ellipse inside the ROI rectangle
+                sels.append(sel[gated])
+                ds2s.append(ds2[gated])
+            self._bootstrap_colours(models, ds2s, [feat[sel] for sel in sels])
+            dc2s = []
+            for m, sel, ds2 in zip(models, sels, ds2s):
+                f = feat[sel]
+                A, logdet_c = m.colour.whitening(cfg)
+                z = f @ A[:, :3].T + A[:, 3]
+                dc2 = np.einsum("ij,ij->i", z, z)
+                dc2s.append(dc2)
+                ok = dc2 <= gc2
+                if m.colour.min_intensity > 0:
+                    ok &= f[:, 2] >= m.colour.min_intensity
+                log_prior = m.log_confidence - 0.5 * math.log(np.linalg.det(m.cov))
+                const = m.weight * log_prior - 0.5 * logdet_c
+                score = _F32(const) - 0.5 * (dc2 + _F32(m.weight) * ds2)
+                better = ok & (score > best[sel])
+                idx = sel[better]
+                best[idx] = score[better]
+                lab[idx] = m.index
+            support[ys, xs] = lab
+            min_px = self._min_pixels()
+            core2, learn2 = cfg.colour_core_sigma**2, cfg.colour_learn_gate**2
+            for m, sel, ds2, dc2 in zip(models, sels, ds2s, dc2s):
+                pos = np.flatnonzero(lab[sel] == m.index)  # positions in sel
+                n = pos.size
+                if n >= min_px and cfg.min_component_fraction > 0:
+                    px, py = xs[sel[pos]], ys[sel[pos]]
+                    box = (slice(int(py.min()), int(py.max()) + 1), slice(int(px.min()), int(px.max()) + 1))
+                    sub = support[box]
+                    kept = _drop_small_components(sub == m.index, sub, cfg.min_component_fraction)
+                    if kept < n:
+                        pos = pos[support[ys[sel[pos]], xs[sel[pos]]] == m.index]
+                        n = pos.size
+                if n < min_px:
+                    support[ys[sel[pos]], xs[sel[pos]]] = -1
+                    continue
+                pts = np.stack([xs[sel[pos]], ys[sel[pos]]], axis=1).astype(float)
+                mean = pts.mean(axis=0)
+                d = pts - mean
+                f = feat[sel[pos]]
+                stats[m.index] = (mean, d.T @ d / n, f, n)
+                core = (ds2[pos] <= core2) & (dc2[pos] <= learn2)
+                core_colours.setdefault(self.colour_classes[self.labels[m.index]], []).append(f[core])
+
+        blobs = []
+        seen = set()
+        sx, sy = self._scale()
+        for i, label in enumerate(self.labels):
+            if i not in stats:
+                continue
+            mean, cov, colours, n = stats[i]
+            cmean, ccov = _colour_stats(colours)
+            fmean, fcov = self._from_work(mean, cov)
+            blobs.append(Blob2D(label, fmean, fcov, cmean, ccov, int(round(n / (sx * sy)))))
+            seen.add(label)
+            tr = self.tracks.get(label)
+            vel = mean - tr.mean if (tr is not None and tr.missed == 0) else np.zeros(2)
+            self.tracks[label] = _Track(mean, cov, vel, 0)
+        for label in list(self.tracks):
+            if label not in seen:
+                self.tracks[label].missed += 1
+                if self.tracks[label].missed > self.config.temporal_max_missed:
+                    del self.tracks[label]
+        self._learn_colours(core_colours)
+        return blobs, support >= 0
+
+    def _bootstrap_colours(self, models: list[_ClassModel], ds2s: list[np.ndarray],
+                           feats: list[np.ndarray]) -> None:
+        """Give each colour class still on its broad start model (no configured default) a
+        robust estimate from the foreground pixels in its labels' cores (within
+        ``colour_core_sigma`` of their priors): median, then mean/cov of the pixels within
+        3 robust sigmas of it. ds2s, feats: per model, the squared spatial Mahalanobis
+        distances (n,) and colour features (n, 3) of its candidate (foreground) pixels."""
+        core2 = self.config.colour_core_sigma**2
+        pending: dict[str, list[np.ndarray]] = {}
+        for m, ds2, f in zip(models, ds2s, feats):
+            cls = self.colour_classes[self.labels[m.index]]
+            if m.colour.learned or cls == SKIN:
+                continue
+            pending.setdefault(cls, []).append(f[ds2 <= core2])
+        for cls, parts in sorted(pending.items()):
+            c = np.concatenate(parts, axis=0).astype(float)
+            if c.shape[0] < self._min_pixels():
+                continue
+            cfg = self.config
+            floor = np.array([cfg.colour_min_sigma_chroma] * 2 + [cfg.colour_min_sigma_intensity])
+            med = np.median(c, axis=0)
+            mad = 1.4826 * np.median(np.abs(c - med), axis=0)
+            keep = np.all(np.abs(c - med) <= 3.0 * (mad + floor), axis=1)
+            if np.count_nonzero(keep) < self._min_pixels():
+                continue
+            model = self.colour_model(cls)
+            model.mean, model.cov = _colour_stats(c[keep])
+            model.learned = True
+
+    def _learn_colours(self, colours_by_class: dict[str, list[np.ndarray]]) -> None:
+        """Blend each colour class model towards the statistics of its labels' core pixels."""
+        beta = self.config.colour_learning_rate
+        if beta <= 0:
+            return
+        for cls, parts in sorted(colours_by_class.items()):
+            c = np.concatenate(parts, axis=0)
+            if c.shape[0] < self._min_pixels():
+                continue
+            mean, cov = _colour_stats(c)
+            model = self.colour_model(cls)
+            if not model.learned:
+                model.mean, model.cov, model.learned = mean, cov, True
+            else:
+                model.mean = (1 - beta) * model.mean + beta * mean
+                model.cov = (1 - beta) * model.cov + beta * cov
+
+    # ------------------------------------------------------------------ start-up
+    def _startup(self, img: np.ndarray, fg: np.ndarray) -> tuple[list[Blob2D], np.ndarray]:
+        """Foreground blob plus the largest skin-coloured foreground components; the mask of
+        protected pixels is empty (nothing is tracked yet)."""
+        cfg = self.config
+        W, H = self.work_size
+        support = np.full((H, W), -1, np.int16)
+        self._support_work = support
+        self.support_labels = []
+        min_px = self._min_pixels()
+        ys, xs = np.nonzero(fg)
+        if xs.size < min_px:
+            return [], np.zeros((H, W), bool)
+        colours = colour_features(img[ys, xs])
+        blobs = [self._blob_from_pixels(FOREGROUND, xs, ys, colours)]
+        support[ys, xs] = 0
+        self.support_labels.append(FOREGROUND)
+
+        skin = self.colour_model(SKIN)
+        is_skin = skin.distance2(colours, cfg) <= cfg.colour_gate**2
+        if not np.any(is_skin):
+            return blobs, np.zeros((H, W), bool)
+        sx, sy = xs[is_skin], ys[is_skin]
+        bx, by = int(sx.min()), int(sy.min())
+        skin_mask = np.zeros((int(sy.max()) - by + 1, int(sx.max()) - bx + 1), np.uint8)
+        skin_mask[sy - by, sx - bx] = 1
+        _, sk_lab, sk_stats, _ = cv2.connectedComponentsWithStats(skin_mask, connectivity=8)
+        areas = sk_stats[1:, cv2.CC_STAT_AREA]
+        order = np.argsort(-areas, kind="stable") + 1
+        max_area = cfg.startup_skin_max_fraction * xs.size
+        for j in order:
+            if len(blobs) > cfg.startup_max_skin_blobs:
+                break
+            area = sk_stats[j, cv2.CC_STAT_AREA]
+            if area < min_px:
+                break
+            if area > max_area:
+                continue
+            x, y, w, h = (int(sk_stats[j, q]) for q in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
+                                                         cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+            cy, cx = np.nonzero(sk_lab[y:y + h, x:x + w] == j)
+            cx, cy = cx + x + bx, cy + y + by
+            blobs.append(self._blob_from_pixels(SKIN, cx, cy, colour_features(img[cy, cx])))
+            support[cy, cx] = len(self.support_labels)
+            self.support_labels.append(SKIN)
+        return blobs, np.zeros((H, W), bool)
+
+    def _blob_from_pixels(self, label: str, xs: np.ndarray, ys: np.ndarray, colours: np.ndarray) -> Blob2D:
+        """Blob2D (input px) from pixel coordinates (N,) and their colour features (N, 3)."""
+        pts = np.stack([xs, ys], axis=1).astype(float)
+        mean = pts.mean(axis=0)
+        d = pts - mean
+        cov = d.T @ d / pts.shape[0]
+        cmean, ccov = _colour_stats(colours)
+        fmean, fcov = self._from_work(mean, cov)
+        sx, sy = self._scale()
+        return Blob2D(label, fmean, fcov, cmean, ccov, int(round(pts.shape[0] / (sx * sy))))
+
+
+def _drop_small_components(mask: np.ndarray, sub: np.ndarray, fraction: float) -> int:
+    """Unlabel (−1 in ``sub``) and remove from ``mask`` the 8-connected components of ``mask``
+    smaller than ``fraction`` of its largest one; returns the pixels left."""
+    n, comp, st, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
+    areas = st[1:, cv2.CC_STAT_AREA]
+    if n <= 2:
+        return int(areas.sum())
+    keep = np.zeros(n, bool)
+    keep[1:] = areas >= fraction * areas.max()
+    if not keep[1:].all():
+        drop = mask & ~keep[comp]
+        sub[drop] = -1
+        mask &= ~drop
+    return int(areas[keep[1:]].sum())
+
+
+def _colour_stats(colours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (3,) and population covariance (3, 3) (float64) of colour features (N, 3)."""
+    c = np.asarray(colours, float).reshape(-1, 3)
+    mean = c.mean(axis=0)
+    d = c - mean
+    return mean, d.T @ d / c.shape[0]
+
+
+# =========================================================================== benchmark
+def _benchmark_scene(width: int, height: int, frames: int) -> tuple[list[np.ndarray], list[list[Prior2D]]]:
+    """A seeded synthetic sequence: textured room, a shirt torso, skin head and hands moving."""
+    rng = np.random.default_rng(0)
+    bg = cv2.resize(rng.uniform(40, 220, (12, 16, 3)).astype(np.uint8), (width, height),
+                    interpolation=cv2.INTER_CUBIC)
+    bg = cv2.add(bg, rng.normal(0, 6, bg.shape).astype(np.int16), dtype=cv2.CV_8U)
+    s = width / 320.0
+    images, priors = [], []
+    for t in range(frames):
+        cx = width * (0.3 + 0.4 * (0.5 + 0.5 * math.sin(t * 0.15)))
+        cy = height * 0.55
+        img = bg.copy()
+        parts = [("torso", (cx, cy), (28 * s, 50 * s), (165, 80, 35)),
+                 ("head", (cx, cy - 70 * s), (14 * s, 14 * s), (150, 180, 220)),
+                 ("l_hand", (cx - 45 * s, cy + 10 * s * (1 + math.sin(t * 0.4))), (7 * s, 7 * s),
+                  (150, 180, 220)),
+                 ("r_hand", (cx + 45 * s, cy + 10 * s), (7 * s, 7 * s), (150, 180, 220))]
+        pri = []
+        for label, c, ax, col in parts:
+            cv2.ellipse(img, (int(c[0] * 16), int(c[1] * 16)), (int(ax[0] * 16), int(ax[1] * 16)), 0, 0, 360,
+                        col, -1, cv2.LINE_AA, 4)
+            pri.append(Prior2D(label, np.array(c) + 1.0, np.diag(np.square(ax) / 4.0), 0.7))
+        img = cv2.add(img, rng.normal(0, 2, img.shape).astype(np.int16), dtype=cv2.CV_8U)
+        images.append(img)
+        priors.append(pri)
+    return images, priors
+
+
+def benchmark(width: int = 320, height: int = 240, frames: int = 60,
+              work_scale: float = 1.0) -> dict[str, float]:
+    """Print and return ms per frame of ``BlobTracker2D.step`` on a synthetic sequence:
+    'seeding' (background seed frames), 'startup' (no priors) and 'tracking' (with priors)."""
+    labels = ["torso", "head", "l_hand", "r_hand"]
+    classes = {"torso": "shirt", "head": SKIN, "l_hand": SKIN, "r_hand": SKIN}
+    cfg = BlobTrackerConfig(work_scale=work_scale)
+    images, priors = _benchmark_scene(width, height, frames)
+    n_seed = cfg.background_seed_frames * cfg.background_seed_stride
+    tracker = BlobTracker2D("bench", labels, classes, cfg)
+    out: dict[str, float] = {}
+    t0 = time.perf_counter()
+    for img in images[:n_seed]:
+        tracker.step(img, None)
+    out["seeding"] = (time.perf_counter() - t0) / n_seed * 1e3
+    rest = images[n_seed:]
+    t0 = time.perf_counter()
+    for img in rest:
+        tracker.step(img, None)
+    out["startup"] = (time.perf_counter() - t0) / len(rest) * 1e3
+    t0 = time.perf_counter()
+    for img, pri in zip(rest, priors[n_seed:]):
+        tracker.step(img, pri)
+    out["tracking"] = (time.perf_counter() - t0) / len(rest) * 1e3
+    print(f"BlobTracker2D {width}x{height} (work_scale {work_scale}): "
+          + ", ".join(f"{k} {v:.2f} ms/frame" for k, v in out.items()))
+    return out
+
+
+if __name__ == "__main__":  # pragma: no cover
+    benchmark(320, 240)
+    benchmark(640, 480)

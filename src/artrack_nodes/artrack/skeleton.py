@@ -1,0 +1,1395 @@
+"""3-D body estimators: the raw baseline and the dynamic skeleton (ALGORITHMS.md §1).
+
+``make_estimator(kind, body, cameras, config)`` returns an object with
+
+    update(stamp_ns, blobs_by_camera) -> BodyEstimate   # estimate at stamp_ns
+    predict(stamp_ns) -> BodyEstimate                   # prediction for a later frame
+
+Kinds
+-----
+``'baseline'`` — the "raw feature tracker" of the paper's Table 1, an honest
+    baseline: each frame the labelled 2-D blobs are triangulated
+    (``triangulation.triangulate_blobs``) and the body model's theta is fitted to
+    the 3-D blobs by bounded least squares (``scipy.optimize.least_squares``,
+    bounds = joint limits), residuals whitened by the measurement covariances,
+    plus weak rest-pose and previous-pose regularisers on the joint dofs so that
+    unobserved dofs (elbow swivel, feet) stay sane. No temporal filtering beyond
+    that warm start / weak previous-pose term. ``predict`` returns the last
+    estimate (zero-velocity model) with covariance inflated by (σ_v Δt)².
+
+``'kinematic'`` — the paper's cheap variant (§2.3, "15 % CPU"): one
+    constant-acceleration Kalman filter per blob (paper Eq. 7; ``kalman.py``)
+    and per link origin; the filtered blob positions are *goals* for the
+    virtual-work constraint solver (``constraints.py``), springs of stiffness
+    ``α P⁻¹`` (the filters' inverse covariance; paper: ``Q_o = α Σ⁻¹ (y − x)``),
+    over free rigid links held together by hard ball / hinge constraints.
+    Soft priors fill the unobserved links: rest pose (relative orientation to the
+    parent), previous / predicted orientation, joint limits (springs toward the
+    clipped pose), a weak "gravity" on limbs without blobs, and weak goals from
+    the link-origin filters. The solver iterates to a globally consistent pose,
+    which is written back into the filters ("the results then become the new
+    state estimates"). ``predict`` runs the filters forward and solves the
+    constraints for the predicted goals; its blobs carry the prediction
+    covariance from ``P_prior``.
+
+``'dynamic'`` — full dynamics (paper §2.1): links with masses and inertias,
+    observations as damped springs, ``q̈ = W (Q + Jᵀλ)`` integrated in
+    sub-steps by ``ConstraintSolver.step_dynamic``; the prediction integrates the
+    same system forward without new observations.
+
+Representation: the skeleton state is the world pose of every link
+(``constraints.py``: each link a free rigid body, joints as constraints), so
+joints hold exactly (‖c‖ < 1e-9) and bone lengths are rigid. The output is
+read back as the body model's theta (relative rotations, clipped to the limits)
+and re-evaluated by the body model's forward kinematics, so ``joints`` and
+``links`` are always exactly consistent with the body model.
+
+Blob covariances in the output (``measurement.blob_cov``): ``'shape+state'``
+(default) is the blob's spatial extent (body model radii, rotated) plus the
+state covariance of its centre (P_post for the estimate, P_prior for the
+prediction) — the spatial prior the 2-D pixel classifier needs; ``'state'`` is
+the state covariance only.
+
+Start-up (``STATUS_INITIALIZING`` until a pose exists): from labelled blobs
+(≥ ``tracking.min_blobs`` labels) a multi-start fit over the heading; otherwise
+from the start-up classes: the ``foreground`` blob is triangulated to the body
+centre, ``skin`` blobs are matched across views (candidate correspondences seeded
+from camera pairs, extended to the other views, scored by reprojection error,
+picked greedily), the highest becomes the head (face), the two others the hands;
+the heading is taken from the face's horizontal offset from the body axis and
+from the line between the hands (whose two perpendicular choices are tried), and
+the rest pose rotated about z is fitted for each candidate, keeping the most
+consistent. For ``tracking.verify_frames`` frames after any initialisation the
+mirrored hypothesis (heading + π, left <-> right) is fitted too and taken over if
+it explains the labelled blobs much better (knees and elbows bend one way only).
+``STATUS_LOST`` after ``tracking.lost_after_frames`` consecutive frames with fewer
+than ``tracking.min_blobs`` usable blobs (triangulated; for the Kalman tracker:
+passing the innovation gate); while lost, ``predict`` carries no blobs (so the
+2-D trackers fall back to their start-up classes) and the tracker re-initialises
+as at start-up.
+
+Units: metres, radians, seconds (stamps in integer ns); world frame z up.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.linalg import null_space
+from scipy.optimize import least_squares
+
+from .body_model import BodyModel
+from .cameras import Camera
+from .constraints import (
+    BallJoints,
+    ConstraintSolver,
+    Force,
+    HingeAxes,
+    OrientationGoal,
+    PointGoal,
+    assemble,
+    exp_so3,
+    log_so3,
+    soft_energy_terms,
+)
+from .constraints import (
+    skew as _skew,
+)
+from .errors import InputError
+from .kalman import ConstantAccelerationKF
+from .triangulation import midpoint, triangulate_blob, triangulate_blobs
+from .types import (
+    STATUS_INITIALIZING,
+    STATUS_LOST,
+    STATUS_TRACKING,
+    Blob2D,
+    Blob3D,
+    BodyEstimate,
+    LinkEstimate,
+)
+
+__all__ = [
+    "BaselineEstimator",
+    "BodyKinematics",
+    "DynamicEstimator",
+    "KinematicEstimator",
+    "SkeletonConfig",
+    "fit_pose",
+    "load_skeleton_config",
+    "make_estimator",
+    "match_skin_blobs",
+]
+
+FOREGROUND = "foreground"
+SKIN = "skin"
+KINDS = ("baseline", "kinematic", "dynamic")
+
+
+# =========================================================================== configuration
+@dataclass
+class MeasurementConfig:
+    """How 3-D blobs become measurements (see config/skeleton.yaml)."""
+
+    cov_scale: float = 0.05
+    floor_m: float = 0.005
+    gate_chi2: float = 16.27
+    blob_cov: str = "shape+state"
+
+
+@dataclass
+class TrackingConfig:
+    """Status logic."""
+
+    min_blobs: int = 3
+    lost_after_frames: int = 15
+    verify_frames: int = 20
+    flip_cost_ratio: float = 0.5
+
+
+def _default_rest_sigmas() -> dict[str, float]:
+    return {"torso": 0.3, "head": 0.5, "l_hand": 0.6, "r_hand": 0.6, "l_foot": 0.3, "r_foot": 0.3}
+
+
+@dataclass
+class PriorConfig:
+    """Rest-pose prior on the joint dofs, shared by all estimators."""
+
+    rest_sigma_rad: float = 1.0
+    rest_sigma_by_link: dict = field(default_factory=_default_rest_sigmas)
+
+
+@dataclass
+class FitConfig:
+    """Bounded least-squares pose fit (baseline, initialisation)."""
+
+    previous_sigma_rad: float = 2.0
+    max_nfev: int = 40
+    predict_velocity_sigma: float = 1.0
+
+
+@dataclass
+class KinematicConfig:
+    """Kalman filters + kinematic constraint solver."""
+
+    blob_jerk: float = 5.0
+    link_jerk: float = 5.0
+    init_position_sigma_m: float = 0.1
+    init_velocity_sigma: float = 0.5
+    init_acceleration_sigma: float = 3.0
+    writeback_sigma_m: float = 0.01
+    alpha: float = 1.0
+    link_goal_weight: float = 0.02
+    rest_weight: float = 1.0
+    previous_sigma_rad: float = 0.3
+    limit_sigma_rad: float = 0.02
+    gravity_weight: float = 2.0
+    coast_velocity_decay: float = 0.8
+    coast_acceleration_decay: float = 0.3
+    max_iterations: int = 8
+    predict_iterations: int = 3
+    angular_velocity_smoothing: float = 0.5
+
+
+@dataclass
+class DynamicConfig:
+    """Full dynamics (masses, springs, damping)."""
+
+    substeps: int = 4
+    spring_scale: float = 0.2
+    spring_stiffness_max: float = 5000.0
+    linear_damping: float = 8.0
+    angular_damping: float = 8.0
+    rest_stiffness: float = 0.5
+    limit_stiffness: float = 50.0
+    gravity_weight: float = 2.0
+    predict_velocity_sigma: float = 0.5
+
+
+@dataclass
+class StartupConfig:
+    """Initialisation from the start-up classes ``foreground`` and ``skin``."""
+
+    face_offset_m: float = 0.06
+    min_facing_offset_m: float = 0.02
+    min_hand_separation_m: float = 0.15
+    match_gate_sigma: float = 3.0
+    match_gate_px: float = 4.0
+    missing_view_penalty_px: float = 10.0
+    max_skin_blobs_per_camera: int = 5
+    skin_sigma_m: float = 0.03
+    face_sigma_z_m: float = 0.08
+    standing_height_sigma_m: float = 0.08
+    centroid_sigma_xy_m: float = 0.10
+    centroid_sigma_z_m: float = 0.30
+    facing_weight: float = 20.0
+    reach_margin: float = 1.15
+
+
+@dataclass
+class SkeletonConfig:
+    """All tunables of the 3-D estimators, one section each (config/skeleton.yaml)."""
+
+    measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    fit: FitConfig = field(default_factory=FitConfig)
+    kinematic: KinematicConfig = field(default_factory=KinematicConfig)
+    dynamic: DynamicConfig = field(default_factory=DynamicConfig)
+    startup: StartupConfig = field(default_factory=StartupConfig)
+
+
+def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = None) -> SkeletonConfig:
+    """SkeletonConfig from None (defaults), a SkeletonConfig, or a mapping of sections
+    (the parsed config/skeleton.yaml). Unknown sections / keys raise InputError."""
+    if config is None:
+        return SkeletonConfig()
+    if isinstance(config, SkeletonConfig):
+        return config
+    if not isinstance(config, Mapping):
+        raise InputError(f"skeleton config: expected a mapping of sections, got {type(config).__name__}")
+    out = SkeletonConfig()
+    sections = {f.name: f for f in dataclasses.fields(SkeletonConfig)}
+    for name, values in config.items():
+        if name not in sections:
+            raise InputError(f"skeleton config: unknown section '{name}' (known: {', '.join(sections)})")
+        if values is None:
+            continue
+        if not isinstance(values, Mapping):
+            raise InputError(f"skeleton config: section '{name}' must be a mapping")
+        current = getattr(out, name)
+        known = {f.name: f for f in dataclasses.fields(current)}
+        for key, value in values.items():
+            if key not in known:
+                raise InputError(
+                    f"skeleton config: unknown field '{name}.{key}' (known: {', '.join(sorted(known))})"
+                )
+            default = getattr(current, key)
+            try:
+                value = type(default)(value)
+            except (TypeError, ValueError):
+                raise InputError(
+                    f"skeleton config: field '{name}.{key}' must be {type(default).__name__}"
+                ) from None
+            setattr(current, key, value)
+    if out.measurement.blob_cov not in ("shape+state", "state"):
+        raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
+    return out
+
+
+# =========================================================================== body kinematics
+class BodyKinematics:
+    """The body model as free rigid links + joint constraints (ALGORITHMS.md §1).
+
+    p (L, 3): link origins (proximal joints), R (L, 3, 3): world_from_link
+    rotations. ``constraints``: for each non-root link a ball joint
+    (PointCoincidence of the parent's attachment point ``offset`` with the
+    child's origin) and, for hinges, a HingeAxis about the hinge axis.
+    masses (L,) kg, inertias (L, 3, 3) about the centre of mass, com (L, 3)
+    link frame: from the link shapes at 1000 kg/m³.
+    """
+
+    def __init__(self, body: BodyModel):
+        self.body = body
+        self.n_links = len(body.links)
+        self.parent = np.asarray(body.parent_index, int)
+        child = np.flatnonzero(self.parent >= 0)
+        hinge = np.array([i for i in child if body.links[i].joint == "hinge"], int)
+        self.constraints: list = [
+            BallJoints(
+                self.parent[child], [body.links[i].offset for i in child], child, np.zeros((child.size, 3))
+            )
+        ]
+        if hinge.size:
+            axes = np.array([body.links[i].axis for i in hinge])
+            self.constraints.append(HingeAxes(self.parent[hinge], axes, hinge, axes))
+        self.masses, self.inertias, self.com = _mass_properties(body)
+        self.blob_links = np.asarray(body.blob_links, int)
+        self.blob_labels = list(body.blob_labels)
+        self.blob_local = np.array([body.links[i].blob.centre for i in self.blob_links], float).reshape(-1, 3)
+        self.blob_index = {lab: k for k, lab in enumerate(self.blob_labels)}
+        self.rest = body.rest_pose()
+        self.rest_local = np.array(
+            [self.local_rotation(i, self.rest[lk.dof_slice]) for i, lk in enumerate(body.links)]
+        )
+        self.non_root_dofs = np.zeros(body.n_dof, bool)
+        self.non_root_dofs[6:] = True
+
+    def solver(self, method: str = "cg") -> ConstraintSolver:
+        """A ConstraintSolver over this body's links and joints."""
+        return ConstraintSolver(self.n_links, self.constraints, self.masses, self.inertias, method, self.com)
+
+    def poses(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Forward kinematics: theta (n_dof,) -> p (L, 3), R (L, 3, 3)."""
+        T = self.body.forward_kinematics(np.asarray(theta, float))
+        return T[:, :3, 3].copy(), T[:, :3, :3].copy()
+
+    def local_rotation(self, i: int, dofs: np.ndarray) -> np.ndarray:
+        """(3, 3) parent_from_link rotation of link i for its dofs (root: world_from_root)."""
+        lk = self.body.links[i]
+        dofs = np.asarray(dofs, float)
+        if lk.joint == "free":
+            return exp_so3(dofs[3:6])
+        if lk.joint == "ball":
+            return exp_so3(dofs)
+        return exp_so3(lk.axis * float(dofs[0]))
+
+    def theta_from_poses(self, p: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Relative joint values of link poses (inverse of FK for consistent poses; the
+        non-root positions are implied by the joints). Not clipped to the limits."""
+        theta = np.zeros(self.body.n_dof)
+        theta[0:3] = p[0]
+        theta[3:6] = log_so3(R[0])
+        k = self.parent[1:]
+        rel = np.swapaxes(R[k], 1, 2) @ R[1:]
+        w = log_so3(rel)
+        for j, lk in enumerate(self.body.links[1:]):
+            s = lk.dof_slice
+            if lk.joint == "ball":
+                theta[s] = w[j]
+            else:
+                Rr = rel[j]
+                vee = 0.5 * np.array([Rr[2, 1] - Rr[1, 2], Rr[0, 2] - Rr[2, 0], Rr[1, 0] - Rr[0, 1]])
+                theta[s.start] = math.atan2(float(vee @ lk.axis), 0.5 * (np.trace(Rr) - 1.0))
+        return theta
+
+    def blob_points(self, p: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """(B, 3) world blob centres of link poses."""
+        return p[self.blob_links] + np.einsum("bij,bj->bi", R[self.blob_links], self.blob_local)
+
+    def body_centroid_local(self) -> np.ndarray:
+        """(3,) mass centroid of the rest pose in the root link frame, m."""
+        p, R = self.poses(self.rest)
+        com_w = p + np.einsum("lij,lj->li", R, self.com)
+        c = (self.masses[:, None] * com_w).sum(0) / self.masses.sum()
+        return R[0].T @ (c - p[0])
+
+
+def _mass_properties(body: BodyModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Masses (L,) kg, inertias about the CoM (L, 3, 3) kg m², CoM (L, 3) link frame, from the
+    shapes (each as its capsule) at the density of water; a link without shapes gets 0.1 kg."""
+    n = len(body.links)
+    masses, inertias, com = np.full(n, 0.1), np.tile(np.eye(3) * 1e-4, (n, 1, 1)), np.zeros((n, 3))
+    for i, lk in enumerate(body.links):
+        parts = []
+        for sh in lk.shapes:
+            a, b, r = sh.as_capsule()
+            length = float(np.linalg.norm(b - a))
+            vol = math.pi * r * r * length + 4.0 / 3.0 * math.pi * r**3
+            if sh.kind == "ellipsoid":
+                vol = 4.0 / 3.0 * math.pi * float(np.prod(sh.radii))
+            axis = (b - a) / length if length > 1e-9 else np.zeros(3)
+            parts.append((1000.0 * vol, 0.5 * (a + b), r, length, axis))
+        if not parts:
+            continue
+        m = sum(q[0] for q in parts)
+        c = sum(q[0] * q[1] for q in parts) / m
+        inertia = np.zeros((3, 3))
+        for ms, cs, r, length, axis in parts:
+            d = cs - c
+            inertia += ms * (0.4 * r * r * np.eye(3) + length**2 / 12.0 * (np.eye(3) - np.outer(axis, axis)))
+            inertia += ms * (d @ d * np.eye(3) - np.outer(d, d))
+        masses[i], inertias[i], com[i] = m, inertia + 1e-6 * np.eye(3), c
+    return masses, inertias, com
+
+
+# =========================================================================== pose fit
+@dataclass
+class PointTarget:
+    """A fit target: link point ``local`` (link frame, m) should be at ``y`` (world, m)
+    with information ``info`` (3, 3) m⁻² (inverse covariance)."""
+
+    link: int
+    local: np.ndarray
+    y: np.ndarray
+    info: np.ndarray
+
+
+def _whitener(info: np.ndarray) -> np.ndarray:
+    """U with Uᵀ U = info (so ‖U e‖² = eᵀ info e); eigenvalues floored."""
+    w, V = np.linalg.eigh(0.5 * (info + info.T))
+    return (V * np.sqrt(np.maximum(w, 1e-12))).T
+
+
+def fit_pose(
+    body: BodyModel,
+    theta0: np.ndarray,
+    targets: Sequence[PointTarget],
+    rest: np.ndarray | None = None,
+    rest_sigma: float | np.ndarray = 1.0,
+    previous: np.ndarray | None = None,
+    previous_sigma: float = 1.0,
+    max_nfev: int = 40,
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Bounded least-squares fit of theta to 3-D point targets.
+
+    Minimises ``½ Σ ‖U_k (x_k(θ) − y_k)‖² + ½ Σ_j ((θ_j − rest_j)/σ_r)² + ½ Σ_j ((θ_j −
+    prev_j)/σ_p)²`` (regularisers on the non-root dofs j) subject to the joint limits
+    (``scipy.optimize.least_squares``, 'trf'), with a batched finite-difference Jacobian
+    (one FK call). rest_sigma: scalar or per-dof (n_dof,) rad. Returns (theta (n_dof,),
+    cost, cov_theta (n_dof, n_dof) = (JᵀJ)⁺).
+    """
+    lo, hi = body.lower, body.upper
+    span = np.maximum(hi - lo, 1e-9)
+    x0 = np.clip(np.asarray(theta0, float), lo + 1e-7 * span, hi - 1e-7 * span)
+    links = np.array([t.link for t in targets], int)
+    local = np.array([t.local for t in targets], float).reshape(-1, 3)
+    y = np.array([t.y for t in targets], float).reshape(-1, 3)
+    U = np.array([_whitener(np.asarray(t.info, float)) for t in targets]).reshape(-1, 3, 3)
+    jd = np.arange(6, body.n_dof)
+    reg_w, reg_c = [], []
+    rest_sigma = np.broadcast_to(np.asarray(rest_sigma, float), (body.n_dof,))[jd]
+    if rest is not None and np.all(rest_sigma > 0):
+        reg_w.append(1.0 / rest_sigma)
+        reg_c.append(np.asarray(rest, float)[jd])
+    if previous is not None and previous_sigma > 0:
+        reg_w.append(np.full(jd.size, 1.0 / previous_sigma))
+        reg_c.append(np.asarray(previous, float)[jd])
+
+    def points(thetas: np.ndarray) -> np.ndarray:
+        T = body.forward_kinematics(thetas)
+        return body.transform_points(T, links, local)
+
+    def residual_from_points(x: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        r = [np.einsum("pij,...pj->...pi", U, x - y).reshape(*x.shape[:-2], -1)]
+        for w, c in zip(reg_w, reg_c, strict=True):
+            r.append(np.broadcast_to(w * (theta[..., jd] - c), (*x.shape[:-2], jd.size)))
+        return np.concatenate(r, axis=-1)
+
+    def fun(theta):
+        return residual_from_points(points(theta), theta)
+
+    h = 1e-6
+
+    def jac(theta):
+        batch = theta[None] + h * np.eye(body.n_dof)
+        batch = np.vstack([theta[None], batch])
+        r = residual_from_points(points(batch), batch)
+        return ((r[1:] - r[0]) / h).T
+
+    if len(targets) == 0 and not reg_w:
+        return x0, 0.0, np.eye(body.n_dof)
+    res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", max_nfev=max_nfev, x_scale=1.0)
+    J = res.jac
+    cov = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True)
+    return res.x, float(res.cost), cov
+
+
+def _mirror_label(label: str) -> str:
+    """'l_hand' <-> 'r_hand'; other labels unchanged."""
+    if label.startswith("l_"):
+        return "r_" + label[2:]
+    if label.startswith("r_"):
+        return "l_" + label[2:]
+    return label
+
+
+def _heading(R_root: np.ndarray) -> float:
+    """Yaw (rad) of the root's forward (+x) axis projected on the floor."""
+    return math.atan2(float(R_root[1, 0]), float(R_root[0, 0]))
+
+
+# =========================================================================== start-up
+def _in_gate(blob: Blob2D, uv: np.ndarray, gate_sigma: float, gate_px: float) -> tuple[bool, float]:
+    r = np.asarray(uv, float) - np.asarray(blob.mean, float)
+    d_px = float(np.linalg.norm(r))
+    try:
+        d2 = float(r @ np.linalg.solve(np.asarray(blob.cov, float).reshape(2, 2), r))
+    except np.linalg.LinAlgError:
+        d2 = np.inf
+    return (d2 <= gate_sigma**2 or d_px <= gate_px), d_px
+
+
+def match_skin_blobs(
+    skin_by_camera: Mapping[str, Sequence[Blob2D]],
+    cameras: Mapping[str, Camera],
+    max_points: int = 3,
+    gate_sigma: float = 3.0,
+    gate_px: float = 4.0,
+    missing_view_penalty_px: float = 10.0,
+) -> list[tuple[np.ndarray, float, tuple[str, ...]]]:
+    """Match unlabelled skin blobs across views into at most ``max_points`` 3-D points.
+
+    Every pair of blobs from two cameras whose rays meet (midpoint in front of both,
+    reprojecting inside both blobs: Mahalanobis ≤ gate_sigma in the blob's 2-D
+    covariance, or ≤ gate_px) seeds a candidate, which is extended by the gated
+    nearest blob of every other camera and triangulated; its score is the mean
+    reprojection error (px) plus ``missing_view_penalty_px`` per camera with skin
+    blobs that it does not use. Candidates are taken greedily by score, never
+    sharing a 2-D blob. Returns [(X (3,) world m, score px, camera names)], best first.
+    """
+    names = sorted(c for c, bl in skin_by_camera.items() if len(bl) and c in cameras)
+    if len(names) < 2:
+        return []
+    rays = {}
+    for c in names:
+        uv = np.array([np.asarray(b.mean, float) for b in skin_by_camera[c]]).reshape(-1, 2)
+        o, d = cameras[c].rays(uv)
+        rays[c] = (o, d)
+    cands: dict[frozenset, tuple[np.ndarray, float, tuple[str, ...]]] = {}
+    for ci, cj in itertools.combinations(names, 2):
+        for a in range(len(skin_by_camera[ci])):
+            for b in range(len(skin_by_camera[cj])):
+                X, spread = midpoint(
+                    np.stack([rays[ci][0], rays[cj][0]]), np.stack([rays[ci][1][a], rays[cj][1][b]])
+                )
+                if spread < 1e-6:
+                    continue
+                members = {ci: a, cj: b}
+                ok = True
+                for c, k in members.items():
+                    uv, depth = cameras[c].project(X[None])
+                    if depth[0] <= 0 or not _in_gate(skin_by_camera[c][k], uv[0], gate_sigma, gate_px)[0]:
+                        ok = False
+                        break
+                if not ok:
+                    continue
+                for ck in names:
+                    if ck in members:
+                        continue
+                    uv, depth = cameras[ck].project(X[None])
+                    if depth[0] <= 0:
+                        continue
+                    best, best_d = None, np.inf
+                    for k, bk in enumerate(skin_by_camera[ck]):
+                        inside, d = _in_gate(bk, uv[0], gate_sigma, gate_px)
+                        if inside and d < best_d:
+                            best, best_d = k, d
+                    if best is not None:
+                        members[ck] = best
+                key = frozenset(members.items())
+                if key in cands:
+                    continue
+                blob = triangulate_blob(
+                    [(cameras[c], skin_by_camera[c][k]) for c, k in sorted(members.items())]
+                )
+                if blob is None:
+                    continue
+                errs = []
+                for c, k in members.items():
+                    uv, _ = cameras[c].project(blob.mean[None])
+                    errs.append(float(np.linalg.norm(uv[0] - np.asarray(skin_by_camera[c][k].mean, float))))
+                score = float(np.mean(errs)) + missing_view_penalty_px * (len(names) - len(members))
+                cands[key] = (blob.mean, score, tuple(sorted(members)))
+    out = []
+    used: set = set()
+    for key, (X, score, cams) in sorted(cands.items(), key=lambda kv: kv[1][1]):
+        if any(m in used for m in key):
+            continue
+        out.append((X, score, cams))
+        used |= set(key)
+        if len(out) >= max_points:
+            break
+    return out
+
+
+# =========================================================================== estimators
+def _empty_estimate(body: BodyModel, stamp_ns: int, status: int) -> BodyEstimate:
+    return BodyEstimate(
+        stamp_ns=int(stamp_ns),
+        joint_names=list(body.joint_names),
+        joints=np.full((len(body.joint_names), 3), np.nan),
+        links=[],
+        blobs=[],
+        status=status,
+        quality=0.0,
+    )
+
+
+class _Estimator:
+    """Shared machinery: triangulation, status, initialisation, output."""
+
+    kind = ""
+
+    def __init__(self, body: BodyModel, cameras: Iterable[Camera] | Mapping[str, Camera], config=None):
+        self.body = body
+        cams = list(cameras.values()) if isinstance(cameras, Mapping) else list(cameras)
+        self.cameras = {c.name: c for c in cams}
+        self.cfg = load_skeleton_config(config)
+        self.kin = BodyKinematics(body)
+        self.labels = set(self.kin.blob_labels)
+        self._centroid_local = self.kin.body_centroid_local()
+        self._reach = self._arm_reach()
+        pr = self.cfg.prior
+        unknown = sorted(set(pr.rest_sigma_by_link) - set(body.link_names))
+        if unknown:
+            raise InputError(
+                f"skeleton config: field 'prior.rest_sigma_by_link' names unknown link '{unknown[0]}'"
+            )
+        #: (L,) rest-prior sigma per link, rad; (n_dof,) per dof
+        self.rest_sigma_link = np.array(
+            [float(pr.rest_sigma_by_link.get(n, pr.rest_sigma_rad)) for n in body.link_names]
+        )
+        self.rest_sigma_dof = np.concatenate(
+            [np.full(lk.n_dof, self.rest_sigma_link[i]) for i, lk in enumerate(body.links)]
+        )
+        self.reset()
+
+    # -- state ---------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget everything (back to STATUS_INITIALIZING)."""
+        self.theta: np.ndarray | None = None
+        self.stamp_ns: int | None = None
+        self.status = STATUS_INITIALIZING
+        self.missed = 0
+        self.quality = 0.0
+        self.last_observed: dict[str, Blob3D] = {}
+        self._start_verification()
+        self._verify_left = 0
+
+    def _arm_reach(self) -> float:
+        """Largest head-blob to hand-blob distance of the body model, m (fully stretched
+        arm: head blob to shoulder plus the bone chain down to the hand blob)."""
+        kin, body = self.kin, self.body
+        if "head" not in kin.blob_index:
+            return 1.0
+        p, R = kin.poses(kin.rest)
+        head = kin.blob_points(p, R)[kin.blob_index["head"]]
+        reach = 0.0
+        for hand in ("l_hand", "r_hand"):
+            if hand not in kin.blob_index:
+                continue
+            i = int(kin.blob_links[kin.blob_index[hand]])
+            chain, length = [], float(np.linalg.norm(kin.blob_local[kin.blob_index[hand]]))
+            while i > 0 and body.links[i].parent is not None:
+                chain.append(i)
+                i = int(kin.parent[i])
+                if i in kin.blob_links and body.links[i].name != hand:
+                    break
+            # chain: hand, forearm, upper arm ... up to a blob-carrying ancestor (the torso)
+            for j in chain[:-1]:
+                length += float(np.linalg.norm(body.links[j].offset))
+            reach = max(reach, length + float(np.linalg.norm(p[chain[-1]] - head)))
+        return reach if reach > 0 else 1.0
+
+    # -- measurements ----------------------------------------------------------
+    def measurement_cov(self, blob: Blob3D) -> np.ndarray:
+        """R (3, 3) m² of a triangulated blob: cov_scale · Blob3D.cov + floor² I."""
+        m = self.cfg.measurement
+        cov = np.asarray(blob.cov, float).reshape(3, 3)
+        return m.cov_scale * 0.5 * (cov + cov.T) + m.floor_m**2 * np.eye(3)
+
+    def _check_cameras(self, blobs_by_camera: Mapping[str, Sequence[Blob2D]]) -> None:
+        for name in blobs_by_camera:
+            if name not in self.cameras:
+                raise InputError(
+                    f"skeleton: blobs from unknown camera '{name}' (known: {', '.join(self.cameras)})"
+                )
+
+    def _triangulate(self, blobs_by_camera, priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
+        labelled = {c: [b for b in bl if b.label in self.labels] for c, bl in blobs_by_camera.items()}
+        obs = triangulate_blobs(labelled, self.cameras, priors)
+        return {k: v for k, v in obs.items() if k in self.labels}
+
+    def _triangulation_priors(self, stamp_ns: int) -> dict[str, Blob3D] | None:
+        return None
+
+    # -- update ----------------------------------------------------------------
+    def update(self, stamp_ns: int, blobs_by_camera: Mapping[str, Sequence[Blob2D]]) -> BodyEstimate:
+        """Estimate at stamp_ns from the 2-D blobs of all cameras ({camera name: [Blob2D]})."""
+        stamp_ns = int(stamp_ns)
+        self._check_cameras(blobs_by_camera)
+        if self.stamp_ns is not None and stamp_ns < self.stamp_ns:
+            self.reset()  # time went backwards (a bag looped): start again
+        priors = self._triangulation_priors(stamp_ns) if self.theta is not None else None
+        obs = self._triangulate(blobs_by_camera, priors)
+        cfg = self.cfg.tracking
+        if self.theta is None or self.status == STATUS_LOST:
+            theta0 = None
+            if len(obs) >= cfg.min_blobs:
+                theta0 = self._init_from_labelled(obs)
+            elif self._has_startup_blobs(blobs_by_camera):
+                theta0 = self._init_from_startup(blobs_by_camera)
+            if theta0 is not None:
+                self._initialise(stamp_ns, theta0, obs)
+                self._start_verification()
+                self.status, self.missed = STATUS_TRACKING, 0
+                self.stamp_ns = stamp_ns
+                self.quality = len(obs) / max(len(self.labels), 1)
+                self.last_observed = obs
+                return self._estimate(stamp_ns)
+            if self.theta is None:
+                self.stamp_ns = stamp_ns
+                return _empty_estimate(self.body, stamp_ns, STATUS_INITIALIZING)
+        self._step(stamp_ns, obs)
+        self.missed = self.missed + 1 if self._n_used(obs) < cfg.min_blobs else 0
+        if self.missed >= cfg.lost_after_frames:
+            self.status = STATUS_LOST
+        elif self.status != STATUS_LOST:
+            self.status = STATUS_TRACKING
+        self.stamp_ns = stamp_ns
+        self.quality = len(obs) / max(len(self.labels), 1)
+        self.last_observed = obs
+        if self._verify_left > 0 and len(obs) >= cfg.min_blobs:
+            self._verify_facing(stamp_ns, obs)
+        return self._estimate(stamp_ns)
+
+    # -- facing verification ----------------------------------------------------
+    def _start_verification(self) -> None:
+        self._verify_left = self.cfg.tracking.verify_frames
+        self._verify_n = 0
+        self._cost_current = self._cost_flipped = 0.0
+        self._flip_theta: np.ndarray | None = None
+
+    def _verify_facing(self, stamp_ns: int, obs: Mapping[str, Blob3D]) -> None:
+        """Right after initialisation the heading may be off by π with left and right
+        swapped (a symmetric pose looks the same). For ``tracking.verify_frames`` frames
+        the labelled blobs are also fitted under the mirrored hypothesis (labels l_ <-> r_,
+        heading + π); joint limits (knees and elbows bend one way) make the wrong one
+        costlier. If the accumulated cost of the mirrored fit falls below
+        ``flip_cost_ratio`` times the current one, the tracker re-initialises mirrored."""
+        f, t = self.cfg.fit, self.cfg.tracking
+        mirrored = {}
+        for lab, blob in obs.items():
+            m = _mirror_label(lab)
+            if m in self.labels:
+                mirrored[m] = Blob3D(m, blob.mean, blob.cov, blob.cameras)
+        targets, targets_m = self._blob_targets(obs), self._blob_targets(mirrored)
+        _, cost_c, _ = fit_pose(
+            self.body, self.theta, targets, self.kin.rest, self.rest_sigma_dof, None, 1.0, f.max_nfev
+        )
+        if self._flip_theta is None:
+            yaw = _heading(exp_so3(self.theta[3:6])) + math.pi
+            theta_f, cost_f = self._init_fit(targets_m, self._rest_at(self.theta[0:3], yaw))
+        else:
+            theta_f, cost_f, _ = fit_pose(
+                self.body,
+                self._flip_theta,
+                targets_m,
+                self.kin.rest,
+                self.rest_sigma_dof,
+                None,
+                1.0,
+                f.max_nfev,
+            )
+        self._flip_theta = theta_f
+        self._cost_current += cost_c
+        self._cost_flipped += cost_f
+        self._verify_n += 1
+        self._verify_left -= 1
+        if self._verify_n >= 3 and self._cost_flipped < t.flip_cost_ratio * self._cost_current:
+            self._initialise(stamp_ns, theta_f, mirrored)
+            self.last_observed = mirrored
+            self._verify_left = 0
+
+    def predict(self, stamp_ns: int) -> BodyEstimate:
+        """Prediction for stamp_ns (normally the next frame); ``.blobs`` feed feedback projection.
+
+        While LOST the prediction carries no blobs, so that the 2-D trackers fall back to
+        their start-up classes and the body can be found again."""
+        if self.theta is None:
+            return _empty_estimate(self.body, stamp_ns, self.status)
+        out = self._predict(int(stamp_ns))
+        if self.status == STATUS_LOST:
+            out.blobs = []
+        return out
+
+    def _n_used(self, obs: Mapping[str, Blob3D]) -> int:
+        """Measurements the last step actually used (a frame with fewer counts as unseen)."""
+        return len(obs)
+
+    # -- initialisation ----------------------------------------------------------
+    @staticmethod
+    def _has_startup_blobs(blobs_by_camera) -> bool:
+        return any(b.label == SKIN for bl in blobs_by_camera.values() for b in bl)
+
+    def _blob_targets(self, obs: Mapping[str, Blob3D]) -> list[PointTarget]:
+        out = []
+        for lab, blob in obs.items():
+            k = self.kin.blob_index[lab]
+            info = np.linalg.inv(self.measurement_cov(blob))
+            out.append(PointTarget(int(self.kin.blob_links[k]), self.kin.blob_local[k], blob.mean, info))
+        return out
+
+    def _rest_at(self, position: np.ndarray, yaw: float) -> np.ndarray:
+        theta = self.kin.rest.copy()
+        theta[0:3] = position
+        theta[3:6] = [0.0, 0.0, yaw]
+        return theta
+
+    def _init_fit(self, targets: list[PointTarget], theta0: np.ndarray) -> tuple[np.ndarray, float]:
+        f = self.cfg.fit
+        theta, cost, _ = fit_pose(
+            self.body,
+            theta0,
+            targets,
+            self.kin.rest,
+            self.rest_sigma_dof,
+            None,
+            1.0,
+            max_nfev=max(f.max_nfev, 60),
+        )
+        return theta, cost
+
+    def _init_from_labelled(self, obs: Mapping[str, Blob3D]) -> np.ndarray | None:
+        """Multi-start fit of the rest pose (four headings) to labelled 3-D blobs."""
+        targets = self._blob_targets(obs)
+        centre = np.mean([b.mean for b in obs.values()], axis=0)
+        rest_p, rest_R = self.kin.poses(self.kin.rest)
+        rest_centre = np.mean(
+            self.kin.blob_points(rest_p, rest_R)[[self.kin.blob_index[k] for k in obs]], axis=0
+        )
+        best = None
+        for yaw in np.arange(4) * (np.pi / 2):
+            Rz = exp_so3(np.array([0.0, 0.0, yaw]))
+            root = centre - Rz @ (rest_centre - rest_p[0])
+            theta, cost = self._init_fit(targets, self._rest_at(root, yaw))
+            if best is None or cost < best[1]:
+                best = (theta, cost)
+        return best[0]
+
+    def _init_from_startup(self, blobs_by_camera) -> np.ndarray | None:
+        """Start-up from ``foreground`` + ``skin`` blobs (module docstring)."""
+        s = self.cfg.startup
+        fg = {c: [b for b in bl if b.label == FOREGROUND] for c, bl in blobs_by_camera.items()}
+        centre_blob = triangulate_blobs(fg, self.cameras).get(FOREGROUND)
+        skin = {}
+        for c, bl in blobs_by_camera.items():
+            sk = sorted((b for b in bl if b.label == SKIN), key=lambda b: -b.pixel_count)
+            skin[c] = sk[: s.max_skin_blobs_per_camera]
+        points = match_skin_blobs(
+            skin, self.cameras, 6, s.match_gate_sigma, s.match_gate_px, s.missing_view_penalty_px
+        )
+        if not points:
+            return None
+        # The face is the highest skin point; hands are the best-scoring others within
+        # arm's reach of it (skin-coloured clutter elsewhere is ignored).
+        face = max((p[0] for p in points), key=lambda x: x[2])
+        hands = [
+            p[0]
+            for p in points
+            if p[0] is not face and np.linalg.norm(p[0] - face) <= s.reach_margin * self._reach
+        ][:2]
+        centre = None if centre_blob is None else centre_blob.mean
+        yaw_face = None
+        if centre is not None:
+            off = (face - centre)[:2]
+            if np.linalg.norm(off) > s.min_facing_offset_m:
+                yaw_face = math.atan2(off[1], off[0])
+        yaws = [] if yaw_face is None else [yaw_face]
+        if len(hands) == 2:
+            lat = (hands[1] - hands[0])[:2]
+            if np.linalg.norm(lat) > s.min_hand_separation_m:
+                y1 = math.atan2(-lat[0], lat[1])
+                yaws += [y1, y1 + math.pi]
+        if not yaws:
+            yaws = list(np.arange(4) * (np.pi / 2))
+        head_k = self.kin.blob_index.get("head")
+        rest_p, rest_R = self.kin.poses(self.kin.rest)
+        info_skin = np.eye(3) / s.skin_sigma_m**2
+        best = None
+        for yaw in yaws:
+            fwd = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+            left = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+            Rz = exp_so3(np.array([0.0, 0.0, yaw]))
+            targets = []
+            head_target = face - s.face_offset_m * fwd
+            if head_k is not None:
+                hl = int(self.kin.blob_links[head_k])
+                info_face = np.diag([1 / s.skin_sigma_m**2, 1 / s.skin_sigma_m**2, 1 / s.face_sigma_z_m**2])
+                targets.append(PointTarget(hl, self.kin.blob_local[head_k], head_target, info_face))
+                head_rest = self.kin.blob_points(rest_p, rest_R)[head_k]
+                root = head_target - Rz @ (head_rest - rest_p[0])
+            else:
+                root = np.array([face[0], face[1], rest_p[0][2]])
+            axis = centre if centre is not None else head_target
+            ordered = sorted(hands, key=lambda x: -float((x - axis) @ left))  # left-most first
+            for name, x in zip(("l_hand", "r_hand"), ordered, strict=False):
+                if len(ordered) == 1:
+                    name = "l_hand" if float((x - axis) @ left) > 0 else "r_hand"
+                k = self.kin.blob_index.get(name)
+                if k is not None:
+                    targets.append(
+                        PointTarget(int(self.kin.blob_links[k]), self.kin.blob_local[k], x, info_skin)
+                    )
+            if centre is not None:
+                info_c = np.diag(
+                    [1 / s.centroid_sigma_xy_m**2, 1 / s.centroid_sigma_xy_m**2, 1 / s.centroid_sigma_z_m**2]
+                )
+                targets.append(PointTarget(0, self._centroid_local, centre, info_c))
+            if s.standing_height_sigma_m > 0:  # standing on the floor (z = 0): pelvis near its rest height
+                info_h = np.diag([0.0, 0.0, 1.0 / s.standing_height_sigma_m**2])
+                targets.append(PointTarget(0, np.zeros(3), self.kin.rest[0:3], info_h))
+            theta, cost = self._init_fit(targets, self._rest_at(root, yaw))
+            if yaw_face is not None:
+                yaw_fit = _heading(exp_so3(theta[3:6]))
+                cost += s.facing_weight * (1.0 - math.cos(yaw_fit - yaw_face))
+            if best is None or cost < best[1]:
+                best = (theta, cost)
+        return best[0]
+
+    # -- output ----------------------------------------------------------------
+    def _blob_list(
+        self, theta: np.ndarray, state_cov: np.ndarray, means: np.ndarray | None = None
+    ) -> list[Blob3D]:
+        """Blob3D per blob label: means (B, 3) (default: FK of theta) and cov = shape + state_cov
+        (B, 3, 3) (or state_cov only, see measurement.blob_cov)."""
+        shape_mean, shape_cov = self.body.blob_gaussians(theta)
+        means = shape_mean if means is None else means
+        add_shape = self.cfg.measurement.blob_cov == "shape+state"
+        out = []
+        for k, lab in enumerate(self.kin.blob_labels):
+            cov = state_cov[k] + (shape_cov[k] if add_shape else 0.0)
+            cams = self.last_observed[lab].cameras if lab in self.last_observed else ()
+            out.append(Blob3D(lab, np.asarray(means[k], float).copy(), 0.5 * (cov + cov.T), cams))
+        return out
+
+    def _links(self, theta, velocity, angular_velocity, cov) -> list[LinkEstimate]:
+        p, R = self.kin.poses(theta)
+        return [
+            LinkEstimate(
+                lk.name,
+                p[i],
+                R[i],
+                np.asarray(velocity[i], float).copy(),
+                np.asarray(angular_velocity[i], float).copy(),
+                np.asarray(cov[i], float).copy(),
+            )
+            for i, lk in enumerate(self.body.links)
+        ]
+
+    # -- kind-specific -----------------------------------------------------------
+    def _initialise(self, stamp_ns: int, theta: np.ndarray, obs: Mapping[str, Blob3D]) -> None:
+        raise NotImplementedError
+
+    def _step(self, stamp_ns: int, obs: Mapping[str, Blob3D]) -> None:
+        raise NotImplementedError
+
+    def _estimate(self, stamp_ns: int) -> BodyEstimate:
+        raise NotImplementedError
+
+    def _predict(self, stamp_ns: int) -> BodyEstimate:
+        raise NotImplementedError
+
+
+def _pose_jacobians(body: BodyModel, theta: np.ndarray, h: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    """d(link pose)/dθ: (L, 6, n) [position; rotation vector (world)] and d(blob centre)/dθ (B, 3, n)."""
+    n = body.n_dof
+    batch = np.vstack([theta[None], theta[None] + h * np.eye(n)])
+    T = body.forward_kinematics(batch)
+    dp = (T[1:, :, :3, 3] - T[0, :, :3, 3]) / h  # (n, L, 3)
+    rel = T[1:, :, :3, :3] @ np.swapaxes(T[0, :, :3, :3], -1, -2)[None]
+    dr = log_so3(rel) / h  # (n, L, 3)
+    Jl = np.concatenate([dp, dr], axis=2).transpose(1, 2, 0)
+    bc = body.blob_centres(batch)
+    Jb = ((bc[1:] - bc[0]) / h).transpose(1, 2, 0)
+    return Jl, Jb
+
+
+class BaselineEstimator(_Estimator):
+    """Per-frame triangulation + bounded least-squares body fit (module docstring)."""
+
+    kind = "baseline"
+
+    def _initialise(self, stamp_ns, theta, obs):
+        self._set_pose(theta, np.eye(self.body.n_dof) * 1e-2, None, 0.0)
+
+    def _set_pose(self, theta, cov_theta, previous_links, dt):
+        self.theta = theta
+        self.cov_theta = cov_theta
+        Jl, Jb = _pose_jacobians(self.body, theta)
+        self.link_cov = Jl @ cov_theta @ np.swapaxes(Jl, 1, 2)
+        self.blob_cov = Jb @ cov_theta @ np.swapaxes(Jb, 1, 2)
+        p, R = self.kin.poses(theta)
+        L = self.kin.n_links
+        self.velocity, self.angular_velocity = np.zeros((L, 3)), np.zeros((L, 3))
+        if previous_links is not None and dt > 0:
+            p0, R0 = previous_links
+            self.velocity = (p - p0) / dt
+            self.angular_velocity = log_so3(R @ np.swapaxes(R0, 1, 2)) / dt
+        self.poses = (p, R)
+
+    def _triangulation_priors(self, stamp_ns):
+        return {b.label: b for b in self._predict(stamp_ns).blobs}
+
+    def _step(self, stamp_ns, obs):
+        f = self.cfg.fit
+        dt = (stamp_ns - self.stamp_ns) * 1e-9
+        targets = self._blob_targets(obs)
+        theta, _, cov = fit_pose(
+            self.body,
+            self.theta,
+            targets,
+            self.kin.rest,
+            self.rest_sigma_dof,
+            self.theta,
+            f.previous_sigma_rad,
+            f.max_nfev,
+        )
+        self._set_pose(theta, cov, self.poses, dt)
+
+    def _estimate(self, stamp_ns):
+        return BodyEstimate(
+            int(stamp_ns),
+            list(self.body.joint_names),
+            self.body.joint_positions(self.theta),
+            self._links(self.theta, self.velocity, self.angular_velocity, self.link_cov),
+            self._blob_list(self.theta, self.blob_cov),
+            self.status,
+            float(self.quality),
+        )
+
+    def _predict(self, stamp_ns):
+        dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
+        q = (self.cfg.fit.predict_velocity_sigma * dt) ** 2
+        L = self.kin.n_links
+        link_cov = self.link_cov.copy()
+        link_cov[:, :3, :3] += q * np.eye(3)
+        zeros = np.zeros((L, 3))
+        return BodyEstimate(
+            int(stamp_ns),
+            list(self.body.joint_names),
+            self.body.joint_positions(self.theta),
+            self._links(self.theta, zeros, zeros, link_cov),
+            self._blob_list(self.theta, self.blob_cov + q * np.eye(3)),
+            self.status,
+            float(self.quality),
+        )
+
+
+class KinematicEstimator(_Estimator):
+    """Kalman filters as goals of the kinematic constraint solver (module docstring).
+
+    State: ``theta`` / link poses ``p``, ``R``; ``blob_kf`` (B blob centres) and
+    ``link_kf`` (L link origins), constant-acceleration filters; ``omega`` (L, 3)
+    smoothed angular velocities, rad/s. Diagnostics of the last update:
+    ``iterations`` (solver) and ``n_accepted`` (blobs passing the innovation gate).
+    """
+
+    kind = "kinematic"
+
+    def __init__(self, body, cameras, config=None):
+        super().__init__(body, cameras, config)
+        self.solver = self.kin.solver()
+        no_blob = np.ones(self.kin.n_links, bool)
+        no_blob[self.kin.blob_links] = False
+        no_blob[0] = True
+        self.goal_links = np.flatnonzero(no_blob)  # links pulled toward their predicted origin
+        limbs = no_blob.copy()
+        limbs[0] = False
+        self.gravity_links = np.flatnonzero(limbs)
+
+    def _new_filter(self, positions: np.ndarray, q: float) -> ConstantAccelerationKF:
+        k = self.cfg.kinematic
+        return ConstantAccelerationKF(
+            positions, k.init_position_sigma_m**2, k.init_velocity_sigma**2, k.init_acceleration_sigma**2, q
+        )
+
+    def _initialise(self, stamp_ns, theta, obs):
+        k = self.cfg.kinematic
+        self.theta = self.body.clip(theta)
+        p, R = self.kin.poses(self.theta)
+        self.p, self.R = p, R
+        self.blob_kf = self._new_filter(self.kin.blob_points(p, R), k.blob_jerk)
+        self.link_kf = self._new_filter(p, k.link_jerk)
+        self.omega = np.zeros((self.kin.n_links, 3))
+        self.link_cov = np.tile(np.eye(6) * k.init_position_sigma_m**2, (self.kin.n_links, 1, 1))
+        self.iterations = 0
+        self.n_accepted = len(obs)
+
+    # -- goals -------------------------------------------------------------------
+    def _soft_terms(self, blob_x, blob_P, link_x, link_P, R_pred):
+        """Static soft terms and the callable adding the pose-dependent priors."""
+        k = self.cfg.kinematic
+        terms: list = []
+        for b in range(len(self.kin.blob_labels)):
+            S = k.alpha * np.linalg.inv(blob_P[b])
+            terms.append(PointGoal(int(self.kin.blob_links[b]), self.kin.blob_local[b], blob_x[b], S))
+        if k.link_goal_weight > 0:
+            for i in self.goal_links:
+                S = k.link_goal_weight * np.linalg.inv(link_P[i])
+                terms.append(PointGoal(int(i), np.zeros(3), link_x[i], S))
+        if k.previous_sigma_rad > 0:
+            for i in range(self.kin.n_links):
+                terms.append(OrientationGoal(i, R_pred[i], 1.0 / k.previous_sigma_rad**2))
+        if k.gravity_weight > 0:
+            for i in self.gravity_links:
+                f = np.array([0.0, 0.0, -k.gravity_weight * self.kin.masses[i]])
+                terms.append(Force(int(i), self.kin.com[i], f))
+        parent = self.kin.parent
+        lo, hi = self.body.lower, self.body.upper
+        rest_S = k.rest_weight / self.rest_sigma_link**2
+        limit_S = 1.0 / k.limit_sigma_rad**2
+
+        def all_terms(p, R):
+            out = list(terms)
+            theta = self.kin.theta_from_poses(p, R)
+            clipped = np.clip(theta, lo, hi)
+            for i, lk in enumerate(self.body.links):
+                if i == 0:
+                    continue
+                Rk = R[parent[i]]
+                if rest_S[i] > 0:
+                    out.append(OrientationGoal(i, Rk @ self.kin.rest_local[i], rest_S[i]))
+                s = lk.dof_slice
+                if np.any(clipped[s] != theta[s]):
+                    out.append(OrientationGoal(i, Rk @ self.kin.local_rotation(i, clipped[s]), limit_S))
+            return out
+
+        return terms, all_terms
+
+    def _solve(self, p0, R0, blob_x, blob_P, link_x, link_P, R_pred, iterations):
+        _, terms = self._soft_terms(blob_x, blob_P, link_x, link_P, R_pred)
+        res = self.solver.solve_kinematic(p0, R0, terms, max_iterations=iterations, step_tol=1e-4)
+        theta = self.body.clip(self.kin.theta_from_poses(res.p, res.R))
+        return theta, res, terms
+
+    def _link_covariance(self, p, R, terms) -> np.ndarray:
+        """(L, 6, 6) covariance of the link poses: the soft terms' information restricted
+        to the constraint manifold, N (Nᵀ H N)⁻¹ Nᵀ with N a null-space basis of J."""
+        _, K, _ = soft_energy_terms(self.kin.n_links, p, R, terms(p, R))
+        H = np.zeros((6 * self.kin.n_links,) * 2)
+        for i in range(self.kin.n_links):
+            H[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = K[i] + 1e-6 * np.eye(6)
+        J = assemble(self.kin.constraints, p, R)[1].toarray()
+        N = null_space(J)
+        C = N @ np.linalg.solve(N.T @ H @ N, N.T)
+        return np.array([C[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(self.kin.n_links)])
+
+    def _triangulation_priors(self, stamp_ns):
+        dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
+        x, P = self.blob_kf.predicted(dt)
+        _, shape_cov = self.body.blob_gaussians(self.theta)
+        return {
+            lab: Blob3D(lab, x[b, :3], P[b, :3, :3] + shape_cov[b])
+            for b, lab in enumerate(self.kin.blob_labels)
+        }
+
+    def _step(self, stamp_ns, obs):
+        k = self.cfg.kinematic
+        dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
+        B = len(self.kin.blob_labels)
+        self.blob_kf.predict(dt)
+        self.link_kf.predict(dt)
+        z = np.full((B, 3), np.nan)
+        Rm = np.tile(np.eye(3), (B, 1, 1))
+        mask = np.zeros(B, bool)
+        for lab, blob in obs.items():
+            b = self.kin.blob_index[lab]
+            z[b], Rm[b] = blob.mean, self.measurement_cov(blob)
+            S = self.blob_kf.P_prior[b, :3, :3] + Rm[b]
+            nu = z[b] - self.blob_kf.x_prior[b, :3]
+            mask[b] = float(nu @ np.linalg.solve(S, nu)) <= self.cfg.measurement.gate_chi2
+        # Coasting filters (no accepted measurement) lose their velocity and acceleration gradually.
+        x = self.blob_kf.x.copy()
+        x[~mask, 3:6] *= k.coast_velocity_decay
+        x[~mask, 6:9] *= k.coast_acceleration_decay
+        self.blob_kf.x_prior = self.blob_kf.x = x
+        self.blob_kf.update(z, Rm, mask)
+        self.n_accepted = int(mask.sum())
+        R_pred = exp_so3(self.omega * dt) @ self.R
+        theta, res, terms = self._solve(
+            self.p,
+            self.R,
+            self.blob_kf.position,
+            self.blob_kf.position_cov(),
+            self.link_kf.x_prior[:, :3],
+            self.link_kf.position_cov(prior=True),
+            R_pred,
+            k.max_iterations,
+        )
+        self.iterations = res.iterations
+        p, R = self.kin.poses(theta)
+        # Write the consistent answer back into the filters (paper §2.3).
+        xb = self.blob_kf.x.copy()
+        xb[:, :3] = self.kin.blob_points(p, R)
+        self.blob_kf.set_state(xb)
+        self.link_kf.update(p, np.eye(3) * k.writeback_sigma_m**2)
+        if dt > 0:
+            w = log_so3(R @ np.swapaxes(self.R, 1, 2)) / dt
+            a = k.angular_velocity_smoothing
+            self.omega = (1.0 - a) * self.omega + a * w
+        self.theta, self.p, self.R = theta, p, R
+        self.link_cov = self._link_covariance(p, R, terms)
+
+    def _n_used(self, obs):
+        return self.n_accepted
+
+    def _estimate(self, stamp_ns):
+        return BodyEstimate(
+            int(stamp_ns),
+            list(self.body.joint_names),
+            self.body.joint_positions(self.theta),
+            self._links(self.theta, self.link_kf.velocity, self.omega, self.link_cov),
+            self._blob_list(self.theta, self.blob_kf.position_cov()),
+            self.status,
+            float(self.quality),
+        )
+
+    def _predict(self, stamp_ns):
+        k = self.cfg.kinematic
+        dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
+        xb, Pb = self.blob_kf.predicted(dt)
+        xl, Pl = self.link_kf.predicted(dt)
+        R_pred = exp_so3(self.omega * dt) @ self.R
+        theta, res, _ = self._solve(
+            self.p, R_pred, xb[:, :3], Pb[:, :3, :3], xl[:, :3], Pl[:, :3, :3], R_pred, k.predict_iterations
+        )
+        link_cov = self.link_cov.copy()
+        link_cov[:, :3, :3] = Pl[:, :3, :3]
+        return BodyEstimate(
+            int(stamp_ns),
+            list(self.body.joint_names),
+            self.body.joint_positions(theta),
+            self._links(theta, xl[:, 3:6], self.omega, link_cov),
+            self._blob_list(theta, Pb[:, :3, :3]),
+            self.status,
+            float(self.quality),
+        )
+
+
+class DynamicEstimator(KinematicEstimator):
+    """Full dynamics (paper §2.1): free rigid links with masses and inertias (from the
+    body model's shapes), observation springs ``Q_o = α Σ⁻¹ (y − x)`` toward the
+    triangulated blobs (α = ``dynamic.spring_scale``, stiffness capped at
+    ``spring_stiffness_max`` N/m), viscous damping, rest-pose / joint-limit torsional
+    springs and weak gravity on unobserved limbs, hard joints through the
+    virtual-work constraint force; integrated by ``ConstraintSolver.step_dynamic``
+    in ``substeps`` per frame. The prediction integrates the same system on
+    without observation springs (momentum carries the links forward)."""
+
+    kind = "dynamic"
+
+    def _initialise(self, stamp_ns, theta, obs):
+        super()._initialise(stamp_ns, theta, obs)
+        self.nu = np.zeros((self.kin.n_links, 6))
+        self.blob_state_cov = np.tile(
+            np.eye(3) * self.cfg.kinematic.init_position_sigma_m**2, (len(self.kin.blob_labels), 1, 1)
+        )
+
+    def _n_used(self, obs):
+        return len(obs)
+
+    def _priors_callable(self, static: list):
+        d = self.cfg.dynamic
+        parent = self.kin.parent
+        lo, hi = self.body.lower, self.body.upper
+        rest_S = d.rest_stiffness / self.rest_sigma_link**2
+        terms = list(static)
+        if d.gravity_weight > 0:
+            for i in self.gravity_links:
+                terms.append(
+                    Force(
+                        int(i), self.kin.com[i], np.array([0.0, 0.0, -d.gravity_weight * self.kin.masses[i]])
+                    )
+                )
+
+        def all_terms(p, R):
+            out = list(terms)
+            theta = self.kin.theta_from_poses(p, R)
+            clipped = np.clip(theta, lo, hi)
+            for i, lk in enumerate(self.body.links):
+                if i == 0:
+                    continue
+                Rk = R[parent[i]]
+                if rest_S[i] > 0:
+                    out.append(OrientationGoal(i, Rk @ self.kin.rest_local[i], rest_S[i]))
+                sl = lk.dof_slice
+                if np.any(clipped[sl] != theta[sl]):
+                    out.append(
+                        OrientationGoal(i, Rk @ self.kin.local_rotation(i, clipped[sl]), d.limit_stiffness)
+                    )
+            return out
+
+        return all_terms
+
+    def _integrate(self, p, R, nu, dt, static):
+        d = self.cfg.dynamic
+        terms = self._priors_callable(static)
+        n = max(int(d.substeps), 1)
+        for _ in range(n):
+            res = self.solver.step_dynamic(p, R, nu, dt / n, terms, d.linear_damping, d.angular_damping)
+            p, R, nu = res.p, res.R, res.nu
+        return p, R, nu, terms
+
+    def _observation_springs(self, obs) -> list:
+        d = self.cfg.dynamic
+        out = []
+        for lab, blob in obs.items():
+            b = self.kin.blob_index[lab]
+            w, V = np.linalg.eigh(np.linalg.inv(self.measurement_cov(blob)))
+            S = (V * np.minimum(d.spring_scale * w, d.spring_stiffness_max)) @ V.T
+            out.append(PointGoal(int(self.kin.blob_links[b]), self.kin.blob_local[b], blob.mean, S))
+        return out
+
+    def _triangulation_priors(self, stamp_ns):
+        dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
+        p, R = self.kin.poses(self.theta)
+        x = self.kin.blob_points(p, R)
+        lever = np.einsum("bij,bj->bi", R[self.kin.blob_links], self.kin.blob_local)
+        v = self.nu[self.kin.blob_links, :3] + np.cross(self.nu[self.kin.blob_links, 3:], lever)
+        _, shape_cov = self.body.blob_gaussians(self.theta)
+        return {
+            lab: Blob3D(lab, x[b] + v[b] * dt, self.blob_state_cov[b] + shape_cov[b])
+            for b, lab in enumerate(self.kin.blob_labels)
+        }
+
+    def _step(self, stamp_ns, obs):
+        dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
+        springs = self._observation_springs(obs)
+        if dt > 0:
+            p, R, nu, terms = self._integrate(self.p, self.R, self.nu, dt, springs)
+        else:
+            p, R, nu, terms = self.p, self.R, self.nu, self._priors_callable(springs)
+        theta = self.body.clip(self.kin.theta_from_poses(p, R))
+        self.theta = theta
+        self.p, self.R = self.kin.poses(theta)
+        self.nu = nu
+        self.omega = nu[:, 3:].copy()
+        self.link_cov = self._link_covariance(self.p, self.R, terms)
+        # Blob centre covariance from the link covariance (position + lever × rotation).
+        lever = np.einsum("bij,bj->bi", self.R[self.kin.blob_links], self.kin.blob_local)
+        A = np.concatenate([np.broadcast_to(np.eye(3), (lever.shape[0], 3, 3)), -_skew(lever)], axis=2)
+        C = self.link_cov[self.kin.blob_links]
+        self.blob_state_cov = A @ C @ np.swapaxes(A, 1, 2)
+
+    def _estimate(self, stamp_ns):
+        return BodyEstimate(
+            int(stamp_ns),
+            list(self.body.joint_names),
+            self.body.joint_positions(self.theta),
+            self._links(self.theta, self.nu[:, :3], self.nu[:, 3:], self.link_cov),
+            self._blob_list(self.theta, self.blob_state_cov),
+            self.status,
+            float(self.quality),
+        )
+
+    def _predict(self, stamp_ns):
+        d = self.cfg.dynamic
+        dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
+        p, R, nu = self.p, self.R, self.nu
+        if dt > 0:
+            p, R, nu, _ = self._integrate(p, R, nu, dt, [])
+        theta = self.body.clip(self.kin.theta_from_poses(p, R))
+        q = (d.predict_velocity_sigma * dt) ** 2
+        link_cov = self.link_cov.copy()
+        link_cov[:, :3, :3] += q * np.eye(3)
+        return BodyEstimate(
+            int(stamp_ns),
+            list(self.body.joint_names),
+            self.body.joint_positions(theta),
+            self._links(theta, nu[:, :3], nu[:, 3:], link_cov),
+            self._blob_list(theta, self.blob_state_cov + q * np.eye(3)),
+            self.status,
+            float(self.quality),
+        )
+
+
+def make_estimator(
+    kind: str,
+    body: BodyModel,
+    cameras: Iterable[Camera] | Mapping[str, Camera],
+    config: SkeletonConfig | Mapping[str, Any] | None = None,
+):
+    """The 3-D estimator ``kind`` ('baseline' | 'kinematic' | 'dynamic') for ``body`` seen by
+    ``cameras`` (list or {name: Camera}); config: parsed config/skeleton.yaml (mapping of
+    sections), a SkeletonConfig, or None for the defaults."""
+    classes = {"baseline": BaselineEstimator, "kinematic": KinematicEstimator, "dynamic": DynamicEstimator}
+    if kind not in classes:
+        raise InputError(f"skeleton: unknown estimator kind '{kind}' (expected one of {', '.join(KINDS)})")
+    return classes[kind](body, cameras, config)

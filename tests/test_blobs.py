@@ -1,0 +1,402 @@
+"""2-D blob tracker (ALGORITHMS.md §1, "2-D blobs") on small synthetic scenes drawn with cv2:
+a textured room, a shirt-coloured ellipse torso, skin-coloured head and hand discs, noise."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from artrack.blobs import FOREGROUND, SKIN, BlobTracker2D, BlobTrackerConfig, colour_features
+from artrack.config import load_dataclass_yaml
+from artrack.errors import InputError
+from artrack.types import BEHIND_CAMERA, OCCLUDED, Prior2D
+
+W, H = 320, 240
+SKIN_BGR = (150, 180, 220)
+SHIRT_BGR = (165, 80, 35)
+LABELS = ["torso", "head", "l_hand", "r_hand"]
+CLASSES = {"torso": "shirt", "head": SKIN, "l_hand": SKIN, "r_hand": SKIN}
+SEED = 7  # seed frames used by these tests (stride 1)
+REPO = Path(__file__).resolve().parents[1]
+
+
+def room(seed: int = 0) -> np.ndarray:
+    """(H, W, 3) uint8 textured background: smooth colour field, posters, fine texture."""
+    rng = np.random.default_rng(seed)
+    img = cv2.resize(rng.uniform(40, 220, (6, 8, 3)).astype(np.uint8), (W, H), interpolation=cv2.INTER_CUBIC)
+    for _ in range(8):
+        x, y = int(rng.integers(0, W - 40)), int(rng.integers(0, H - 40))
+        cv2.rectangle(img, (x, y), (x + int(rng.integers(15, 60)), y + int(rng.integers(15, 60))),
+                      tuple(int(c) for c in rng.integers(20, 235, 3)), -1)
+    tex = rng.normal(0.0, 6.0, img.shape)
+    return np.clip(img + tex, 0, 255).astype(np.uint8)
+
+
+BG = room(7)  # a room with almost no shirt- or skin-coloured patches (no camouflage)
+
+
+def default_parts(cx: float = 160.0, cy: float = 140.0) -> dict[str, tuple]:
+    """label -> (kind, centre (x, y) px, radius or axes px, BGR): torso, head, hands."""
+    return {
+        "torso": ("ellipse", (cx, cy), (28.0, 45.0), SHIRT_BGR),
+        "head": ("disc", (cx, cy - 68.0), 14.0, SKIN_BGR),
+        "l_hand": ("disc", (cx - 52.0, cy + 10.0), 8.0, SKIN_BGR),
+        "r_hand": ("disc", (cx + 10.0, cy + 20.0), 8.0, SKIN_BGR),  # in front of the torso
+    }
+
+
+def _coverage(kind: str, c: tuple, size) -> tuple[tuple[slice, slice], np.ndarray]:
+    """Pixel coverage (8x8 supersampled) of a disc (radius px) or axis-aligned ellipse
+    (semi-axes px) centred at c = (x, y) px, over its bounding box (box, (h, w) coverage)."""
+    ax, ay = (size, size) if kind == "disc" else size
+    x0, y0 = min(W, max(0, int(c[0] - ax) - 1)), min(H, max(0, int(c[1] - ay) - 1))
+    x1, y1 = max(x0, min(W, int(c[0] + ax) + 2)), max(y0, min(H, int(c[1] + ay) + 2))
+    sub = (np.arange(8) + 0.5) / 8 - 0.5
+    xs = (np.arange(x0, x1)[:, None] + sub[None, :]).reshape(-1)
+    ys = (np.arange(y0, y1)[:, None] + sub[None, :]).reshape(-1)
+    inside = ((xs[None, :] - c[0]) / ax) ** 2 + ((ys[:, None] - c[1]) / ay) ** 2 <= 1.0
+    return (slice(y0, y1), slice(x0, x1)), inside.reshape(y1 - y0, 8, x1 - x0, 8).mean(axis=(1, 3))
+
+
+def render(parts: dict[str, tuple], frame: int, noise: float = 2.0
+           ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Draw parts (in dict order, later ones in front) over BG, anti-aliased by their exact
+    coverage, with seeded Gaussian noise.
+
+    Returns the BGR image and label -> (H, W) bool mask of its visible pixels (coverage >= 1/2).
+    """
+    img = BG.astype(float)
+    masks: dict[str, np.ndarray] = {}
+    for label, (kind, c, size, colour) in parts.items():
+        box, cov = _coverage(kind, c, size)
+        img[box] = img[box] * (1.0 - cov[..., None]) + np.array(colour, float) * cov[..., None]
+        m = np.zeros((H, W), bool)
+        m[box] = cov >= 0.5
+        for other in masks.values():
+            other &= ~m
+        masks[label] = m
+    rng = np.random.default_rng([frame, 11])
+    img = np.clip(np.rint(img + rng.normal(0.0, noise, img.shape)), 0, 255).astype(np.uint8)
+    return img, masks
+
+
+def make_tracker(**kw) -> BlobTracker2D:
+    cfg = BlobTrackerConfig(background_seed_frames=SEED, background_seed_stride=1, **kw)
+    return BlobTracker2D("cam01", LABELS, CLASSES, cfg)
+
+
+def seed_with_moving_person(tracker: BlobTracker2D) -> None:
+    """SEED frames of the person walking across the room (present from frame 0)."""
+    for t in range(SEED):
+        img, _ = render(default_parts(cx=40.0 + 40.0 * t), t)
+        tracker.step(img, None)
+    assert tracker.background.ready
+
+
+def priors_for(parts: dict[str, tuple], offset=(1.5, -1.0), confidence: float = 0.8,
+               **visibility) -> list[Prior2D]:
+    """Priors near the truth: mean offset by ``offset`` px, covariance 1.3 x the part's second moments."""
+    out = []
+    for label, (kind, c, size, _) in parts.items():
+        ax = (size, size) if kind == "disc" else size
+        cov = 1.3 * np.diag(np.square(ax) / 4.0)
+        out.append(Prior2D(label, np.array(c) + np.array(offset), cov, confidence, visibility.get(label, 0)))
+    return out
+
+
+def by_label(blobs) -> dict:
+    return {b.label: b for b in blobs}
+
+
+def disc_cov(r: float) -> np.ndarray:
+    return np.eye(2) * r * r / 4.0
+
+
+# --------------------------------------------------------------------------- background
+def test_background_learned_while_person_moves_and_foreground_found():
+    tracker = make_tracker()
+    for t in range(SEED):
+        parts = default_parts(cx=40.0 + 40.0 * t)
+        img, masks = render(parts, t)
+        tracker.step(img, None)
+        if t >= 4:  # from five samples on, the running median already excludes the person
+            truth = np.logical_or.reduce(list(masks.values()))
+            fg = tracker.foreground_mask
+            assert (fg & truth).sum() / (fg | truth).sum() > 0.9
+    bg = tracker.background
+    assert bg.ready
+    err = np.abs(bg.mean - BG.astype(np.float32))
+    assert np.median(err) < 2.0
+    assert np.mean(err.max(axis=2) < 8.0) > 0.995  # the person left no trace in the background
+    img, masks = render(default_parts(), 100)
+    tracker.step(img, None)
+    truth = np.logical_or.reduce(list(masks.values()))
+    fg = tracker.foreground_mask
+    assert fg.shape == (H, W) and fg.dtype == bool
+    assert (fg & truth).sum() / (fg | truth).sum() > 0.95
+    near = cv2.dilate(truth.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+    assert (fg & ~near).sum() < 30  # beyond the anti-aliased rim
+
+
+def test_tracked_person_standing_still_is_not_absorbed():
+    tracker = make_tracker()
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    for t in range(60):  # two seconds standing still, tracked with feedback
+        img, masks = render(parts, 200 + t)
+        blobs = by_label(tracker.step(img, priors_for(parts)))
+    truth = np.logical_or.reduce(list(masks.values()))
+    assert (tracker.foreground_mask & truth).sum() / truth.sum() > 0.95
+    assert set(blobs) == set(LABELS)
+    # the room behind the person is still the room (except on the mixed-colour rim, which no
+    # label claims: unexplained and unchanged, it is taken into the background)
+    inner = cv2.erode(truth.view(np.uint8), np.ones((5, 5), np.uint8)).view(bool)
+    err = np.abs(tracker.background.mean - BG.astype(np.float32)).max(axis=2)
+    assert np.mean(err[inner] < 8.0) > 0.99
+
+
+def test_ghost_of_a_person_absorbed_by_the_seed_heals_quickly():
+    tracker = make_tracker()
+    here = default_parts(cx=90.0)
+    for t in range(SEED):  # standing still through the whole seed: absorbed into the background
+        img, _ = render(here, t)
+        tracker.step(img, None)
+    _, ghost_masks = render(here, 0)
+    ghost = np.logical_or.reduce(list(ghost_masks.values()))
+    there = default_parts(cx=235.0)
+    img, masks = render(there, 20)
+    tracker.step(img, priors_for(there))
+    assert tracker.foreground_mask[ghost].mean() > 0.9  # the room where the person stood: a ghost
+    cfg = tracker.config
+    for t in range(cfg.background_ghost_frames + 3):
+        img, masks = render(there, 21 + t)
+        blobs = by_label(tracker.step(img, priors_for(there)))
+    assert tracker.foreground_mask[ghost].mean() < 0.05
+    truth = np.logical_or.reduce(list(masks.values()))
+    assert tracker.foreground_mask[truth].mean() > 0.95  # the person (also standing still) stays
+    assert np.linalg.norm(blobs["head"].mean - np.array(there["head"][1])) < 1.0
+
+
+# --------------------------------------------------------------------------- start-up
+def test_startup_reports_foreground_and_three_skin_blobs():
+    tracker = make_tracker()
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    img, masks = render(parts, 50)
+    blobs = tracker.step(img, None)
+    assert tracker.mode == "startup"
+    assert [b.label for b in blobs] == [FOREGROUND, SKIN, SKIN, SKIN]
+    truth = np.logical_or.reduce(list(masks.values()))
+    ys, xs = np.nonzero(truth)
+    fgb = blobs[0]
+    assert np.allclose(fgb.mean, [xs.mean(), ys.mean()], atol=1.0)
+    assert abs(fgb.pixel_count - truth.sum()) < 0.05 * truth.sum()  # rim pixels of partial coverage
+    # largest first: head, then the two hands (either order, same size)
+    assert np.allclose(blobs[1].mean, parts["head"][1], atol=1.0)
+    hands = sorted((b.mean for b in blobs[2:]), key=lambda m: m[0])
+    assert np.allclose(hands[0], parts["l_hand"][1], atol=1.0)
+    assert np.allclose(hands[1], parts["r_hand"][1], atol=1.0)
+    for b in blobs[1:]:
+        assert abs(b.color_mean[0] - 220 / 550) < 0.02 and abs(b.color_mean[1] - 180 / 550) < 0.02
+    sup = tracker.support_map
+    assert sup.shape == (H, W)
+    assert tracker.support_labels == [FOREGROUND, SKIN, SKIN, SKIN]
+    assert np.mean(sup[masks["head"]] == 1) > 0.95
+    assert np.all(sup[~tracker.foreground_mask] == -1)
+
+
+def test_startup_waits_for_a_few_seed_samples():
+    tracker = make_tracker()
+    for t in range(tracker.config.startup_min_seed_samples - 1):
+        img, _ = render(default_parts(cx=40.0 + 40.0 * t), t)
+        assert tracker.step(img, None) == []
+        assert np.all(tracker.support_map == -1)
+    t = tracker.config.startup_min_seed_samples - 1
+    img, _ = render(default_parts(cx=40.0 + 40.0 * t), t)
+    assert tracker.step(img, None)[0].label == FOREGROUND
+
+
+# --------------------------------------------------------------------------- priors
+def test_priors_assign_labels_to_close_discs_with_accurate_statistics():
+    tracker = make_tracker()
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    # the two hands side by side, 3 px apart, the left one over the torso edge
+    parts["l_hand"] = ("disc", (140.25, 150.5), 8.0, SKIN_BGR)
+    parts["r_hand"] = ("disc", (159.25, 150.5), 8.0, SKIN_BGR)
+    for t in range(3):
+        img, masks = render(parts, 60 + t)
+        blobs = by_label(tracker.step(img, priors_for(parts)))
+        assert tracker.mode == "tracking"
+        assert set(blobs) == set(LABELS)
+        for label in ("head", "l_hand", "r_hand"):
+            _, c, r, _ = parts[label]
+            b = blobs[label]
+            assert np.linalg.norm(b.mean - np.array(c)) < 1.0, (label, b.mean, c)
+            assert np.allclose(b.cov, disc_cov(r), rtol=0.1, atol=0.1 * r * r / 4), (label, b.cov)
+            assert abs(b.pixel_count - np.pi * r * r) < 0.1 * np.pi * r * r
+        sup = tracker.support_map
+        for label in ("head", "l_hand", "r_hand"):
+            assert np.mean(sup[masks[label]] == LABELS.index(label)) > 0.95
+        ys, xs = np.nonzero(masks["torso"])
+        assert np.linalg.norm(blobs["torso"].mean - [xs.mean(), ys.mean()]) < 1.0
+    shirt = tracker.colour_model("shirt")
+    assert shirt.learned
+    assert np.allclose(shirt.mean[:2], [35 / 280, 80 / 280], atol=0.02)
+
+
+def test_occluded_prior_is_not_reported():
+    tracker = make_tracker()
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    for t in range(3):  # colour models learned from a few labelled frames
+        img, _ = render(parts, 67 + t)
+        tracker.step(img, priors_for(parts))
+    img, _ = render(parts, 70)
+    priors = priors_for(parts, r_hand=OCCLUDED)
+    priors.append(Prior2D("l_foot", np.full(2, np.nan), np.full((2, 2), np.nan), 0.0, BEHIND_CAMERA))
+    blobs = by_label(tracker.step(img, priors))
+    assert "r_hand" not in blobs
+    assert set(blobs) == {"torso", "head", "l_hand"}
+    assert np.linalg.norm(blobs["l_hand"].mean - np.array(parts["l_hand"][1])) < 1.0
+    # r_hand's pixels are left unlabelled, not given to the torso
+    assert np.all(tracker.support_map[render(parts, 70)[1]["r_hand"]] != LABELS.index("torso"))
+    # behind the camera: the same
+    blobs = by_label(tracker.step(img, priors_for(parts, head=BEHIND_CAMERA)))
+    assert "head" not in blobs and "r_hand" in blobs
+
+
+def test_distractor_far_from_the_prior_does_not_steal_the_label():
+    tracker = make_tracker()
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    distractor = {"other": ("disc", (270.0, 200.0), 8.0, SKIN_BGR)}  # another person's hand
+    img, _ = render({**distractor, **parts}, 80)
+    blobs = by_label(tracker.step(img, priors_for(parts)))
+    assert np.linalg.norm(blobs["l_hand"].mean - np.array(parts["l_hand"][1])) < 1.0
+    assert blobs["l_hand"].pixel_count < 1.1 * np.pi * 64
+    # and without feedback, temporal smoothness keeps ignoring it while it comes closer
+    for t in range(1, 8):
+        distractor = {"other": ("disc", (270.0 - 8 * t, 200.0 - 3 * t), 8.0, SKIN_BGR)}
+        img, _ = render({**distractor, **parts}, 80 + t)
+        blobs = by_label(tracker.step(img, None))
+        assert np.linalg.norm(blobs["l_hand"].mean - np.array(parts["l_hand"][1])) < 1.0
+        assert np.linalg.norm(blobs["r_hand"].mean - np.array(parts["r_hand"][1])) < 1.0
+
+
+def test_confident_prior_wins_contested_pixels():
+    tracker = make_tracker()
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    parts["l_hand"] = ("disc", (150.0, 150.0), 8.0, SKIN_BGR)
+    del parts["r_hand"]
+    img, _ = render(parts, 130)
+    both = priors_for(parts)  # r_hand predicted on the very same disc, less confidently
+    both.append(Prior2D("r_hand", np.array([151.0, 150.0]), 1.3 * disc_cov(8.0), 0.1))
+    blobs = by_label(tracker.step(img, both))
+    assert "r_hand" not in blobs or blobs["r_hand"].pixel_count < 0.1 * blobs["l_hand"].pixel_count
+    assert np.linalg.norm(blobs["l_hand"].mean - [150.0, 150.0]) < 1.0
+
+
+# --------------------------------------------------------------------------- temporal smoothness
+def test_temporal_smoothness_keeps_labels_on_moving_discs():
+    tracker = make_tracker()
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    img, _ = render(parts, 90)
+    tracker.step(img, priors_for(parts))  # one labelled frame, then no feedback
+    for t in range(1, 13):
+        moved = dict(parts)
+        moved["l_hand"] = ("disc", (108.0 + 4.0 * t, 150.0 - 2.0 * t), 8.0, SKIN_BGR)
+        moved["r_hand"] = ("disc", (170.0 - 1.0 * t, 160.0 + 3.0 * t), 8.0, SKIN_BGR)
+        moved["head"] = ("disc", (160.0 + 1.5 * t, 72.0), 14.0, SKIN_BGR)
+        img, _ = render(moved, 90 + t)
+        blobs = by_label(tracker.step(img, None))
+        assert tracker.mode == "tracking"
+        for label in ("head", "l_hand", "r_hand"):
+            assert label in blobs, (t, label)
+            assert np.linalg.norm(blobs[label].mean - np.array(moved[label][1])) < 1.0, (t, label)
+
+
+def test_lost_labels_fall_back_to_startup():
+    tracker = make_tracker(temporal_max_missed=2)
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    img, _ = render(parts, 95)
+    tracker.step(img, priors_for(parts))
+    for t in range(4):
+        img, _ = render({}, 96 + t)  # the person has left
+        assert tracker.step(img, None) == []
+    img, _ = render(parts, 100)
+    blobs = tracker.step(img, None)
+    assert tracker.mode == "startup" and blobs[0].label == FOREGROUND
+
+
+# --------------------------------------------------------------------------- options and errors
+def test_half_working_resolution_keeps_full_resolution_results():
+    tracker = make_tracker(work_scale=0.5)
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    img, _ = render(parts, 110)
+    blobs = by_label(tracker.step(img, priors_for(parts)))
+    for label in ("head", "l_hand", "r_hand"):
+        _, c, r, _ = parts[label]
+        assert np.linalg.norm(blobs[label].mean - np.array(c)) < 1.0
+        assert np.allclose(blobs[label].cov, disc_cov(r), rtol=0.2, atol=0.2 * r * r / 4)
+    assert tracker.support_map.shape == (H, W) and tracker.foreground_mask.shape == (H, W)
+
+
+def test_deterministic():
+    runs = []
+    for _ in range(2):
+        tracker = make_tracker()
+        seed_with_moving_person(tracker)
+        parts = default_parts()
+        out = []
+        for t in range(3):
+            img, _ = render(parts, 120 + t)
+            out += tracker.step(img, priors_for(parts) if t == 0 else None)
+        runs.append(out)
+    for a, b in zip(runs[0], runs[1], strict=True):
+        assert a.label == b.label and a.pixel_count == b.pixel_count
+        assert np.array_equal(a.mean, b.mean) and np.array_equal(a.cov, b.cov)
+
+
+def test_bad_input_raises_input_error():
+    tracker = make_tracker()
+    with pytest.raises(InputError, match="cam01"):
+        tracker.step(np.zeros((H, W), np.uint8), None)
+    with pytest.raises(InputError, match="cam01"):
+        tracker.step(np.zeros((H, W, 3), np.float32), None)
+    with pytest.raises(InputError, match="background_threshold"):
+        BlobTrackerConfig(background_threshold=-1.0)
+    with pytest.raises(InputError, match="colour_features"):
+        BlobTrackerConfig(colour_features="hsv")
+    with pytest.raises(InputError, match="skin"):
+        BlobTracker2D("cam01", ["skin"], {})
+
+
+def test_resolution_change_restarts_the_background():
+    tracker = make_tracker()
+    seed_with_moving_person(tracker)
+    tracker.step(np.zeros((120, 160, 3), np.uint8), None)
+    assert not tracker.background.ready and tracker.foreground_mask.shape == (120, 160)
+
+
+def test_colour_features():
+    f = colour_features(np.array([[30, 60, 90], [0, 0, 0]], np.uint8))
+    assert np.allclose(f[0], [90 / 180, 60 / 180, 180 / 765])
+    assert np.allclose(f[1], [0, 0, 0])
+
+
+def test_config_file_mirrors_the_dataclass():
+    path = REPO / "config" / "blob_features.yaml"
+    loaded = load_dataclass_yaml(path, BlobTrackerConfig)
+    assert loaded == BlobTrackerConfig()
+    text = path.read_text()
+    for f in dataclasses.fields(BlobTrackerConfig):
+        assert f"\n{f.name}:" in text, f.name

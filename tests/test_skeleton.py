@@ -1,0 +1,302 @@
+"""3-D estimators (ALGORITHMS.md §1): baseline fit, Kalman + constraints, start-up.
+
+Synthetic data only: blob Gaussians of the body model projected into a ring of
+four pinhole cameras (no renderer).
+"""
+
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from artrack.body_model import load_body_model
+from artrack.cameras import Camera
+from artrack.config import config_dir
+from artrack.errors import InputError
+from artrack.motion import pose_at
+from artrack.skeleton import (
+    BodyKinematics,
+    SkeletonConfig,
+    load_skeleton_config,
+    make_estimator,
+)
+from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING, Blob2D
+
+FPS = 30.0
+
+
+@pytest.fixture(scope="module")
+def body():
+    return load_body_model()
+
+
+@pytest.fixture(scope="module")
+def cameras():
+    f, w, h = 600.0, 640, 480
+    K = np.array([[f, 0, w / 2 - 0.5], [0, f, h / 2 - 0.5], [0, 0, 1.0]])
+    cams = []
+    for k in range(4):
+        a = 2 * np.pi * k / 4 + 0.3
+        eye = np.array([4.0 * np.cos(a), 4.0 * np.sin(a), 1.6])
+        cams.append(Camera.look_at(f"cam{k}", w, h, K, eye, np.array([0.0, 0.0, 1.0])))
+    return cams
+
+
+def blobs_2d(body, cameras, theta, rng=None, sigma_px=0.0, hide=()):
+    """Labelled 2-D blobs: projected blob-feature Gaussians (+ pixel noise on the means)."""
+    means, covs = body.blob_gaussians(theta)
+    out = {}
+    for cam in cameras:
+        uv, J = cam.project_jacobian(means)
+        blobs = []
+        for k, label in enumerate(body.blob_labels):
+            if label in hide:
+                continue
+            m = uv[k] + (rng.normal(scale=sigma_px, size=2) if rng is not None else 0.0)
+            blobs.append(Blob2D(label, m, J[k] @ covs[k] @ J[k].T, pixel_count=200))
+        out[cam.name] = blobs
+    return out
+
+
+def startup_blobs(body, cameras, theta, face_forward=0.07):
+    """Start-up classes: one 'foreground' blob (projected scatter of the body volume) and
+    three unlabelled 'skin' blobs (face in front of the head, both hands), shuffled per camera."""
+    T = body.forward_kinematics(theta)
+    p0, p1, rad, _, _ = body.capsules(theta, T)
+    vol = np.pi * rad**2 * np.linalg.norm(p1 - p0, axis=1) + 4 / 3 * np.pi * rad**3
+    rng = np.random.default_rng(123)
+    k = rng.choice(len(rad), size=400, p=vol / vol.sum())
+    pts = p0[k] + rng.random(400)[:, None] * (p1[k] - p0[k]) + rng.normal(size=(400, 3)) * rad[k, None] * 0.5
+    means, _ = body.blob_gaussians(theta)
+    head = body.link_index("head")
+    labels = body.blob_labels
+    face = means[labels.index("head")] + face_forward * T[head, :3, 0]
+    skin = [face, means[labels.index("l_hand")], means[labels.index("r_hand")]]
+    out = {}
+    for ci, cam in enumerate(cameras):
+        uv, _ = cam.project(pts)
+        blobs = [Blob2D("foreground", uv.mean(0), np.cov(uv.T), pixel_count=5000)]
+        for j in [(ci + i) % 3 for i in range(3)]:
+            m, J = cam.project_jacobian(skin[j][None])
+            blobs.append(Blob2D("skin", m[0], J[0] @ (np.eye(3) * 0.03**2) @ J[0].T, pixel_count=300))
+        out[cam.name] = blobs
+    return out
+
+
+def stamp(k: int) -> int:
+    return int(round(k * 1e9 / FPS))
+
+
+def test_body_kinematics_roundtrip(body):
+    kin = BodyKinematics(body)
+    rng = np.random.default_rng(0)
+    theta = body.clip(body.rest_pose() + rng.normal(scale=0.3, size=body.n_dof))
+    p, R = kin.poses(theta)
+    np.testing.assert_allclose(kin.theta_from_poses(p, R), theta, atol=1e-9)
+    assert np.linalg.norm(kin.solver().residual(p, R)) < 1e-12
+    assert np.all(kin.masses > 0) and 50 < kin.masses.sum() < 100  # an adult, kg
+
+
+def _test_pose(body):
+    theta = body.rest_pose()
+    theta[0:6] = [0.2, -0.1, 0.95, 0.0, 0.0, 0.5]
+    for name, value in {
+        "torso": [0.05, 0.2, 0.1],
+        "l_upper_arm": [0.8, 0.0, 0.0],
+        "l_forearm": [0.9],
+        "r_upper_arm": [0.0, -0.7, 0.0],
+        "r_forearm": [0.5],
+        "l_thigh": [0.0, -0.4, 0.0],
+        "l_shin": [0.6],
+        "r_thigh": [0.0, 0.2, 0.0],
+        "r_shin": [0.3],
+    }.items():
+        theta[body.dof_slice(name)] = value
+    return theta
+
+
+def test_baseline_recovers_known_pose_from_exact_blobs(body, cameras):
+    theta = _test_pose(body)
+    est = make_estimator("baseline", body, cameras, None)
+    for k in range(3):
+        e = est.update(stamp(k), blobs_2d(body, cameras, theta))
+    assert e.status == STATUS_TRACKING
+    err = np.linalg.norm(e.joints - body.joint_positions(theta), axis=1)
+    assert err.mean() < 0.020, dict(zip(body.joint_names, err.round(3), strict=True))
+    # Observed blobs are fitted closely; every output is consistent with the body model.
+    np.testing.assert_allclose([b.mean for b in e.blobs], body.blob_centres(theta), atol=0.01)
+    assert [b.label for b in e.blobs] == body.blob_labels
+    assert [lk.name for lk in e.links] == body.link_names
+    assert all(np.all(np.linalg.eigvalsh(b.cov) > 0) for b in e.blobs)
+
+
+@pytest.fixture(scope="module")
+def line_runs(body, cameras):
+    """The paper's line-following test: the right hand moves on a straight line; 1 px
+    noise on the 2-D blob means; baseline vs kinematic tracker (estimates and predictions)."""
+    n = 40
+    thetas = [pose_at("line", k / FPS, body) for k in range(n + 1)]
+    runs = {}
+    for kind in ("baseline", "kinematic"):
+        rng = np.random.default_rng(42)
+        est = make_estimator(kind, body, cameras, None)
+        estimates, predictions = [], []
+        for k in range(n):
+            estimates.append(est.update(stamp(k), blobs_2d(body, cameras, thetas[k], rng, 1.0)))
+            predictions.append(est.predict(stamp(k + 1)))
+        runs[kind] = (estimates, predictions)
+    return thetas, runs
+
+
+def _hand(estimate, label="r_hand"):
+    return next(b.mean for b in estimate.blobs if b.label == label)
+
+
+def test_kinematic_follows_line_better_than_baseline(body, line_runs):
+    thetas, runs = line_runs
+    k_hand = body.blob_labels.index("r_hand")
+    truth = np.array([body.blob_centres(t)[k_hand] for t in thetas[:-1]])
+    c = truth.mean(0)
+    u = np.linalg.svd(truth - c)[2][0]  # the line's direction (best fit to the true path)
+
+    def perpendicular_rms(d):
+        return float(np.sqrt(np.mean(np.sum((d - np.outer(d @ u, u)) ** 2, axis=1))))
+
+    skip = 10  # filter convergence
+    line, lateral, mpjpe = {}, {}, {}
+    for kind, (estimates, _) in runs.items():
+        hand = np.array([_hand(e) for e in estimates[skip:]])
+        line[kind] = perpendicular_rms(hand - c)  # distance to the best-fit line of the true path
+        lateral[kind] = perpendicular_rms(hand - truth[skip:])  # error across the line
+        mpjpe[kind] = np.mean(
+            [
+                np.linalg.norm(e.joints - body.joint_positions(t), axis=1).mean()
+                for e, t in zip(estimates[skip:], thetas[skip:], strict=False)
+            ]
+        )
+        assert all(e.status == STATUS_TRACKING for e in estimates)
+    assert line["kinematic"] < line["baseline"], line
+    assert lateral["kinematic"] < 0.85 * lateral["baseline"], lateral
+    assert mpjpe["kinematic"] < 0.85 * mpjpe["baseline"], mpjpe
+    assert mpjpe["kinematic"] < 0.02
+
+
+def test_predict_is_ahead_for_moving_hand(body, line_runs):
+    thetas, runs = line_runs
+    k_hand = body.blob_labels.index("r_hand")
+    estimates, predictions = runs["kinematic"]
+    lead, gain = [], []
+    for k in range(10, len(estimates)):
+        est, pred = _hand(estimates[k]), _hand(predictions[k])
+        true_now = body.blob_centres(thetas[k])[k_hand]
+        true_next = body.blob_centres(thetas[k + 1])[k_hand]
+        v = true_next - true_now
+        if np.linalg.norm(v) * FPS < 0.15:  # only while the hand moves (> 0.15 m/s)
+            continue
+        lead.append((pred - est) @ v / (v @ v))  # 1 = exactly one frame ahead
+        gain.append(np.linalg.norm(est - true_next) - np.linalg.norm(pred - true_next))
+    assert len(lead) > 10
+    assert 0.5 < np.median(lead) < 1.5
+    assert np.mean(gain) > 0  # the prediction is nearer the next position than the last estimate
+    # The prediction's blobs carry the (growing) prediction covariance, and the baseline's
+    # zero-velocity prediction stays where it was.
+    assert predictions[-1].stamp_ns == stamp(len(estimates))
+    b_est, b_pred = runs["baseline"][0][-1], runs["baseline"][1][-1]
+    np.testing.assert_allclose(_hand(b_pred), _hand(b_est))
+    cov_e = next(b.cov for b in b_est.blobs if b.label == "r_hand")
+    cov_p = next(b.cov for b in b_pred.blobs if b.label == "r_hand")
+    assert np.trace(cov_p) > np.trace(cov_e)
+
+
+def test_outputs_are_consistent_skeletons(body, line_runs):
+    _, runs = line_runs
+    kin = BodyKinematics(body)
+    for estimates, predictions in runs.values():
+        for e in (estimates[-1], predictions[-1]):
+            p = np.array([lk.position for lk in e.links])
+            R = np.array([lk.rotation for lk in e.links])
+            assert np.linalg.norm(kin.solver().residual(p, R)) < 1e-9  # joints exact, bones rigid
+            theta = kin.theta_from_poses(p, R)
+            np.testing.assert_allclose(body.joint_positions(theta), e.joints, atol=1e-9)
+            assert body.within_limits(theta, tol=1e-6)
+            assert all(lk.cov.shape == (6, 6) and np.all(np.isfinite(lk.cov)) for lk in e.links)
+
+
+@pytest.mark.parametrize("yaw", [0.0, 1.2, 2.6, -2.0])
+def test_startup_from_foreground_and_skin_gives_right_facing(body, cameras, yaw):
+    theta = body.rest_pose()
+    theta[0:6] = [0.3, -0.2, 0.95, 0.0, 0.0, yaw]
+    theta[body.dof_slice("r_upper_arm")] = [0.0, -0.8, 0.0]  # right hand forward
+    theta[body.dof_slice("r_forearm")] = [0.9]
+    est = make_estimator("kinematic", body, cameras, None)
+    e = est.update(stamp(0), startup_blobs(body, cameras, theta))
+    assert e.status == STATUS_TRACKING
+    R_root = e.links[0].rotation
+    heading = math.atan2(R_root[1, 0], R_root[0, 0])
+    assert abs((heading - yaw + np.pi) % (2 * np.pi) - np.pi) < np.radians(20)
+    centres = body.blob_centres(theta)
+    for label in ("l_hand", "r_hand", "head"):
+        assert np.linalg.norm(_hand(e, label) - centres[body.blob_labels.index(label)]) < 0.08, label
+    # The next frame's labelled blobs are tracked from there.
+    e = est.update(stamp(1), blobs_2d(body, cameras, theta))
+    assert e.status == STATUS_TRACKING
+    assert np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean() < 0.06
+
+
+def test_status_initializing_lost_and_recovery(body, cameras):
+    cfg = {"tracking": {"lost_after_frames": 3}}
+    est = make_estimator("kinematic", body, cameras, cfg)
+    e = est.update(stamp(0), {c.name: [] for c in cameras})
+    assert e.status == STATUS_INITIALIZING and e.blobs == [] and np.all(np.isnan(e.joints))
+    assert est.predict(stamp(1)).status == STATUS_INITIALIZING
+    theta = _test_pose(body)
+    assert est.update(stamp(1), blobs_2d(body, cameras, theta)).status == STATUS_TRACKING
+    hidden = tuple(body.blob_labels[2:])  # only two labels visible: too few
+    statuses = [est.update(stamp(k), blobs_2d(body, cameras, theta, hide=hidden)).status for k in range(2, 6)]
+    assert statuses == [STATUS_TRACKING, STATUS_TRACKING, STATUS_LOST, STATUS_LOST]
+    assert est.predict(stamp(6)).status == STATUS_LOST
+    e = est.update(stamp(6), blobs_2d(body, cameras, theta))
+    assert e.status == STATUS_TRACKING
+    assert np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean() < 0.03
+
+
+def test_dynamic_estimator_tracks(body, cameras):
+    est = make_estimator("dynamic", body, cameras, None)
+    rng = np.random.default_rng(1)
+    errs = []
+    for k in range(15):
+        theta = pose_at("line", k / FPS, body)
+        e = est.update(stamp(k), blobs_2d(body, cameras, theta, rng, 1.0))
+        errs.append(np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean())
+        pred = est.predict(stamp(k + 1))
+    assert e.status == STATUS_TRACKING and np.mean(errs[5:]) < 0.03
+    assert [b.label for b in pred.blobs] == body.blob_labels
+
+
+def test_deterministic(body, cameras):
+    outs = []
+    for _ in range(2):
+        est = make_estimator("kinematic", body, cameras, None)
+        rng = np.random.default_rng(5)
+        for k in range(4):
+            e = est.update(stamp(k), blobs_2d(body, cameras, pose_at("line", k / FPS, body), rng, 1.0))
+        outs.append((e.joints, est.predict(stamp(4)).joints))
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    np.testing.assert_array_equal(outs[0][1], outs[1][1])
+
+
+def test_config_file_and_errors(body, cameras):
+    data = yaml.safe_load((config_dir() / "skeleton.yaml").read_text())
+    assert load_skeleton_config(data) == SkeletonConfig()  # the file documents the defaults
+    with pytest.raises(InputError, match="kinematic.bogus"):
+        load_skeleton_config({"kinematic": {"bogus": 1}})
+    with pytest.raises(InputError, match="unknown section"):
+        load_skeleton_config({"kalman": {}})
+    with pytest.raises(InputError, match="unknown estimator kind"):
+        make_estimator("particle", body, cameras, None)
+    with pytest.raises(InputError, match="rest_sigma_by_link"):
+        make_estimator("baseline", body, cameras, {"prior": {"rest_sigma_by_link": {"tail": 1.0}}})
+    est = make_estimator("baseline", body, cameras, None)
+    with pytest.raises(InputError, match="unknown camera 'cam9'"):
+        est.update(0, {"cam9": []})
