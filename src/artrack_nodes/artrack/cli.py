@@ -1,0 +1,284 @@
+"""The `artrack` command: synth, track, eval, overlay, launch.
+
+    artrack synth --seed N --out scene.mcap [options]
+    artrack track INPUT --out DIR            (INPUT a bag)
+    artrack track --videos V1 V2 ... --calib FILE --out DIR
+    artrack eval --truth BAG_OR_CSV --pred DIR_OR_BAG      (prints "MPJPE <x> mm")
+    artrack overlay INPUT --pred DIR_OR_BAG --out montage.png|video.mp4
+    artrack launch config/graph.yaml [--set key=value ...]
+
+Bad input is one line on stderr naming the file and field, exit status 1,
+and no half-written output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ArtrackError
+from .progress import Progress
+
+TRACK_BAG = "track"  # rosbag2 folder written by `artrack track` inside --out
+JOINTS_CSV = "joints.csv"
+
+
+# ------------------------------------------------------------------ synth
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from .bags import write_scene_bag
+    from .body_model import load_body_model
+    from .synth import SceneConfig, generate_scene, scene_cameras
+
+    config = SceneConfig(
+        n_cameras=args.cameras, width=args.width, height=args.height, fps=args.fps, duration_s=args.duration,
+        seed=args.seed, noise_sigma=args.noise, motion=args.motion, occlusion=args.occlusion,
+        distractor=args.distractor,
+    )
+    body = load_body_model(args.body_model)
+    cameras = scene_cameras(config)
+    n_frames = int(round(config.duration_s * config.fps))
+    frames = Progress(generate_scene(config, body), total=n_frames, label="synth", quiet=args.quiet)
+    write_scene_bag(args.out, cameras, frames, joint_names=body.joint_names)
+    print(f"wrote {args.out}: {n_frames} frames x {len(cameras)} cameras")
+    return 0
+
+
+# ------------------------------------------------------------------ track
+
+
+def _open_input(args: argparse.Namespace):
+    """(cameras, frame iterator of (stamp_ns, {camera: image}), n_frames or None, fps or None)."""
+    from .bags import read_scene
+
+    if args.videos:
+        from .cameras import load_calibration
+        from .video import open_videos
+
+        if not args.calib:
+            raise ArtrackError("--videos needs --calib FILE")
+        cameras = load_calibration(args.calib)
+        if args.camera_names:
+            by_name = {c.name: c for c in cameras}
+            for n in args.camera_names:
+                if n not in by_name:
+                    raise ArtrackError(f"{args.calib}: no camera named '{n}'")
+            cameras = [by_name[n] for n in args.camera_names]
+        if len(cameras) < len(args.videos):
+            raise ArtrackError(f"{args.calib}: {len(cameras)} cameras for {len(args.videos)} videos")
+        videos = open_videos(args.videos, cameras[: len(args.videos)], args.scale, fps=args.fps)
+        frames = ((stamp, images) for _, stamp, images in videos)
+        return list(videos.cameras), frames, videos.n_frames or None, videos.fps
+    if not args.input:
+        raise ArtrackError("give a bag (INPUT) or --videos ... --calib FILE")
+    scene = read_scene(args.input)
+    cameras = scene.cameras
+    if args.camera_names:
+        missing = [n for n in args.camera_names if n not in {c.name for c in cameras}]
+        if missing:
+            raise ArtrackError(f"{args.input}: no camera named '{missing[0]}'")
+        cameras = [c for c in cameras if c.name in args.camera_names]
+    names = {c.name for c in cameras}
+    frames = ((stamp, {n: im for n, im in images.items() if n in names}) for stamp, images in scene.frames())
+    return cameras, frames, scene.n_frames, None
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    from .bags import BagWriter
+    from .body_model import load_body_model
+    from .evaluation import write_joints_csv
+    from .messages import blob_array_msg, body_msg, prior_array_msg, rosbags_factory
+    from .pipeline import ClosedLoopPipeline, load_pipeline_config
+
+    cameras, frames, total, input_fps = _open_input(args)
+    body = load_body_model(args.body_model)
+    fps = args.fps or input_fps or 30.0
+    config = load_pipeline_config(estimator=args.estimator, feedback=not args.no_feedback, fps=fps,
+                                  blob_config=args.blob_config, skeleton_config=args.skeleton_config)
+    pipe = ClosedLoopPipeline(body, cameras, config)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    f = rosbags_factory()
+    stamps, joints = [], []
+    stage_ms: dict[str, list[float]] = {}
+    t0 = time.perf_counter()
+    with BagWriter(out / TRACK_BAG) as bag:
+        bag.add_topic("/artrack/body", "artrack_msgs/msg/TrackedBody")
+        bag.add_topic("/artrack/prediction", "artrack_msgs/msg/TrackedBody")
+        for cam in pipe.cameras:
+            bag.add_topic(f"/cameras/{cam.name}/blobs", "artrack_msgs/msg/Blob2DArray")
+            bag.add_topic(f"/cameras/{cam.name}/blob_priors", "artrack_msgs/msg/BlobPrior2DArray")
+        for stamp, images in Progress(frames, total=total, label="track", quiet=args.quiet):
+            if args.max_frames and len(stamps) >= args.max_frames:
+                break
+            res = pipe.step(stamp, images)
+            for k, v in res.timings_ms.items():
+                stage_ms.setdefault(k, []).append(v)
+            for cam in pipe.cameras:
+                if cam.name in res.blobs:
+                    used = res.priors_used.get(cam.name)
+                    prior_stamp = used[0].stamp_ns if used and config.feedback else None
+                    bag.write(f"/cameras/{cam.name}/blobs", stamp,
+                              blob_array_msg(f, stamp, cam.name, cam.frame_id, res.blobs[cam.name], prior_stamp))
+                bag.write(f"/cameras/{cam.name}/blob_priors", stamp,
+                          prior_array_msg(f, res.prediction.stamp_ns, cam.name, cam.frame_id,
+                                          res.next_priors.get(cam.name, [])))
+            bag.write("/artrack/prediction", stamp, body_msg(f, res.prediction))
+            bag.write("/artrack/body", stamp, body_msg(f, res.estimate))
+            stamps.append(stamp)
+            joints.append(res.estimate.joints)
+    elapsed = time.perf_counter() - t0
+    if not stamps:
+        raise ArtrackError(f"{args.input or args.videos[0]}: no frames")
+    write_joints_csv(out / JOINTS_CSV, stamps, body.joint_names, np.asarray(joints))
+    print(f"tracked {len(stamps)} frames in {elapsed:.1f} s: {len(stamps) / elapsed:.1f} frames per second")
+    print("per-stage ms/frame: " + ", ".join(f"{k} {np.mean(v):.2f}" for k, v in stage_ms.items()))
+    print(f"wrote {out / TRACK_BAG} and {out / JOINTS_CSV}")
+    return 0
+
+
+# ------------------------------------------------------------------- eval
+
+
+def load_predictions(path: str):
+    """(stamps, joint_names, joints (T, J, 3)) from a track DIR (joints.csv or its bag) or an output bag."""
+    from .evaluation import read_body_topic, read_joints_csv
+
+    p = Path(path)
+    if p.is_dir() and (p / JOINTS_CSV).is_file():
+        return read_joints_csv(p / JOINTS_CSV)
+    if p.suffix == ".csv":
+        return read_joints_csv(p)
+    if p.is_dir() and (p / TRACK_BAG).is_dir():
+        p = p / TRACK_BAG
+    return read_body_topic(p, "/artrack/body")
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from .evaluation import evaluate, format_report, load_truth, plot_error_over_time
+
+    truth = load_truth(args.truth)
+    pred = load_predictions(args.pred)
+    result = evaluate(pred, truth, tolerance_ns=args.tolerance_ms * 1_000_000)
+    print(format_report(result))
+    pred_path = Path(args.pred)
+    if args.plot:
+        plot = Path(args.plot)
+    elif pred_path.is_dir() and (pred_path / JOINTS_CSV).is_file():
+        plot = pred_path / "error_over_time.png"  # an `artrack track` folder
+    else:
+        plot = pred_path.parent / f"{pred_path.stem}_error_over_time.png"  # beside a bag or CSV
+    plot_error_over_time(result.per_frame_mm, result.stamps_ns, plot, title=f"MPJPE over time: {args.pred}")
+    print(f"wrote {plot}")
+    return 0
+
+
+# ---------------------------------------------------------------- overlay
+
+
+def cmd_overlay(args: argparse.Namespace) -> int:
+    from .bags import read_scene
+    from .overlay import render_overlay
+
+    scene = read_scene(args.input)
+    pred = load_predictions(args.pred) if args.pred else None
+    render_overlay(scene, pred, args.out, frames=args.frames, cols=args.cols, fps=args.fps, quiet=args.quiet)
+    print(f"wrote {args.out}")
+    return 0
+
+
+# ----------------------------------------------------------------- launch
+
+
+def cmd_launch(args: argparse.Namespace) -> int:
+    from .launcher import launch, parse_overrides
+
+    return launch(args.graph, parse_overrides(args.set or []), timeout_s=args.timeout, log_dir=args.log_dir)
+
+
+# ------------------------------------------------------------------- main
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="artrack", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("synth", help="render a synthetic multi-camera scene with ground truth into a bag")
+    s.add_argument("--out", required=True, help="output bag (rosbag2 .mcap)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--cameras", type=int, default=4, help="number of cameras (default 4)")
+    s.add_argument("--width", type=int, default=640)
+    s.add_argument("--height", type=int, default=480)
+    s.add_argument("--fps", type=float, default=30.0)
+    s.add_argument("--duration", type=float, default=10.0, help="seconds (default 10)")
+    s.add_argument("--noise", type=float, default=2.0, help="pixel noise sigma, grey levels")
+    s.add_argument("--motion", default="default", help="scripted motion (default: walk, wave, reach)")
+    s.add_argument("--occlusion", action="store_true", help="include a self-occlusion segment")
+    s.add_argument("--distractor", action="store_true", help="a second person walks through")
+    s.add_argument("--body-model", default=None)
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_synth)
+
+    t = sub.add_parser("track", help="run the closed-loop tracker offline (same core as the graph)")
+    t.add_argument("input", nargs="?", help="input bag (rosbag2 mcap/sqlite3 or ROS 1 .bag)")
+    t.add_argument("--out", required=True, help="output folder: track/ bag and joints.csv")
+    t.add_argument("--videos", nargs="+", help="video files, one per camera (instead of a bag)")
+    t.add_argument("--calib", help="calibration for --videos (.yaml, Calib.toml, .qca.txt)")
+    t.add_argument("--camera-names", nargs="+", help="cameras to use (default: all)")
+    t.add_argument("--scale", type=float, default=1.0, help="downscale videos to a working resolution")
+    t.add_argument("--estimator", default="kinematic", choices=["baseline", "kinematic", "dynamic"])
+    t.add_argument("--no-feedback", action="store_true", help="blob trackers ignore the 3-D priors")
+    t.add_argument("--fps", type=float, default=None,
+                   help="nominal frame rate (first prediction step; videos: overrides the container's); default 30")
+    t.add_argument("--blob-config", default=None)
+    t.add_argument("--skeleton-config", default=None)
+    t.add_argument("--body-model", default=None)
+    t.add_argument("--max-frames", type=int, default=0)
+    t.add_argument("--quiet", action="store_true")
+    t.set_defaults(func=cmd_track)
+
+    e = sub.add_parser("eval", help="MPJPE against ground truth, with an error-over-time plot")
+    e.add_argument("--truth", required=True, help="bag with /artrack/ground_truth, or joints CSV")
+    e.add_argument("--pred", required=True, help="output folder of `artrack track`, or an output bag")
+    e.add_argument("--plot", default=None, help="PNG path (default: PRED/error_over_time.png)")
+    e.add_argument("--tolerance-ms", type=float, default=5.0, help="stamp matching tolerance")
+    e.set_defaults(func=cmd_eval)
+
+    o = sub.add_parser("overlay", help="draw the projected skeleton on every camera (PNG montage or MP4)")
+    o.add_argument("input", help="input bag")
+    o.add_argument("--pred", default=None, help="tracking output (folder or bag); default: ground truth only")
+    o.add_argument("--out", required=True, help="montage .png or video .mp4")
+    o.add_argument("--frames", default=None,
+                   help="frame index or range a:b (default: middle frame for PNG, all for MP4)")
+    o.add_argument("--cols", type=int, default=2)
+    o.add_argument("--fps", type=float, default=30.0)
+    o.add_argument("--quiet", action="store_true")
+    o.set_defaults(func=cmd_overlay)
+
+    la = sub.add_parser("launch", help="start the node graph as separate processes")
+    la.add_argument("graph", help="graph file, e.g. config/graph.yaml")
+    la.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a graph variable")
+    la.add_argument("--timeout", type=float, default=None, help="stop the graph after this many seconds")
+    la.add_argument("--log-dir", default=None, help="write each node's output to LOG_DIR/<node>.log")
+    la.set_defaults(func=cmd_launch)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except ArtrackError as exc:
+        print(f"artrack {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

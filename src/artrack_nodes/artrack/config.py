@@ -1,0 +1,66 @@
+"""Configuration files: where config/ is, and YAML -> dataclass with checked keys."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+from .errors import InputError
+
+T = TypeVar("T")
+
+
+def config_dir() -> Path:
+    """The config/ folder: $ARTRACK_CONFIG_DIR, the source tree's, or the installed share/ copy."""
+    env = os.environ.get("ARTRACK_CONFIG_DIR")
+    if env:
+        return Path(env)
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        if (parent / "config" / "body_model.yaml").is_file():
+            return parent / "config"
+        if (parent / "share" / "artrack_nodes" / "config").is_dir():
+            return parent / "share" / "artrack_nodes" / "config"
+    raise InputError("cannot find the config/ folder; set ARTRACK_CONFIG_DIR")
+
+
+def config_path(name_or_path: str | os.PathLike | None, default_name: str) -> Path:
+    """A path as given, or config/<default_name> when empty."""
+    if name_or_path:
+        return Path(name_or_path)
+    return config_dir() / default_name
+
+
+def read_yaml(path: str | os.PathLike) -> dict[str, Any]:
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{p}: no such file") from None
+    except yaml.YAMLError as exc:
+        raise InputError(f"{p}: not valid YAML ({exc.__class__.__name__})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise InputError(f"{p}: top level must be a mapping")
+    return data
+
+
+def dataclass_from_dict(cls: type[T], data: dict[str, Any], where: str) -> T:
+    """Build dataclass ``cls`` from ``data``; an unknown key is an InputError naming it."""
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise InputError(f"{where}: unknown field '{unknown[0]}' (known: {', '.join(sorted(names))})")
+    return cls(**data)
+
+
+def load_dataclass_yaml(path: str | os.PathLike, cls: type[T], section: str | None = None) -> T:
+    data = read_yaml(path)
+    if section is not None:
+        data = data.get(section, {}) or {}
+    return dataclass_from_dict(cls, data, f"{Path(path).name}" + (f" [{section}]" if section else ""))

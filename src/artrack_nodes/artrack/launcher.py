@@ -1,0 +1,195 @@
+"""`artrack launch`: start a node graph as separate OS processes.
+
+The graph file (config/graph.yaml) lists the nodes, their executables and
+parameters; nodes marked ``per_camera`` are started once per camera. Each
+node gets a generated ROS parameter file. The launcher forwards SIGINT and
+SIGTERM, restarts a node that crashes (at most ``restarts`` times), ends the
+graph when a node marked ``until_exit`` (the bag player) exits, and shuts the
+others down cleanly (SIGINT, then SIGTERM, then SIGKILL).
+
+ROS-free: it runs the executables that `ros2 run artrack_nodes <name>` runs
+(install/artrack_nodes/lib/artrack_nodes/<name>), found through
+AMENT_PREFIX_PATH, so it works where `ros2 launch` is not installed. The same
+graph for real ROS installs is src/artrack_nodes/launch/tracking.launch.py.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .config import read_yaml
+from .errors import InputError
+
+PACKAGE = "artrack_nodes"
+
+
+def find_executable(name: str) -> Path:
+    """lib/artrack_nodes/<name> under an AMENT_PREFIX_PATH entry."""
+    for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+        if prefix:
+            candidate = Path(prefix) / "lib" / PACKAGE / name
+            if candidate.is_file():
+                return candidate
+    raise InputError(f"executable '{name}' not found in lib/{PACKAGE} of AMENT_PREFIX_PATH (run `make setup`)")
+
+
+@dataclass
+class NodeSpec:
+    name: str
+    executable: str
+    parameters: dict[str, Any] = field(default_factory=dict)
+    restarts: int = 0
+    until_exit: bool = False
+
+
+def expand_graph(graph: dict[str, Any], where: str, overrides: dict[str, Any] | None = None) -> list[NodeSpec]:
+    """Node specs from a graph mapping; ``${name}`` strings are replaced from ``variables``/overrides."""
+    variables = dict(graph.get("variables", {}) or {})
+    variables.update(overrides or {})
+    cameras = list(variables.get("cameras", []))
+
+    def subst(value: Any, camera: str | None) -> Any:
+        if isinstance(value, str):
+            if value.startswith("${") and value.endswith("}") and value[2:-1] in variables:
+                return variables[value[2:-1]]  # whole-value substitution keeps lists/bools
+            for key, val in variables.items():
+                value = value.replace("${" + key + "}", str(val))
+            return value.replace("{camera}", camera or "")
+        if isinstance(value, list):
+            return [subst(v, camera) for v in value]
+        if isinstance(value, dict):
+            return {k: subst(v, camera) for k, v in value.items()}
+        return value
+
+    specs: list[NodeSpec] = []
+    for i, entry in enumerate(graph.get("nodes", []) or []):
+        if not isinstance(entry, dict) or "executable" not in entry:
+            raise InputError(f"{where}: nodes[{i}] has no field 'executable'")
+        if subst(entry.get("enabled", True), None) in (False, "false"):
+            continue
+        per_camera = bool(entry.get("per_camera", False))
+        for camera in cameras if per_camera else [None]:
+            name = subst(entry.get("name", entry["executable"]), camera)
+            specs.append(
+                NodeSpec(
+                    name=name,
+                    executable=entry["executable"],
+                    parameters=subst(dict(entry.get("parameters", {}) or {}), camera),
+                    restarts=int(entry.get("restarts", 0)),
+                    until_exit=bool(entry.get("until_exit", False)),
+                )
+            )
+    return specs
+
+
+class Launcher:
+    """Runs NodeSpecs as child processes until an ``until_exit`` node ends or a signal arrives."""
+
+    def __init__(self, specs: list[NodeSpec], log_dir: Path | None = None, quiet: bool = False):
+        self.specs = specs
+        self.tmp = Path(tempfile.mkdtemp(prefix="artrack_launch_"))
+        self.log_dir = log_dir
+        self.quiet = quiet
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.restarts_left = {s.name: s.restarts for s in specs}
+        self.stopping = False
+        self.exit_codes: dict[str, int] = {}
+
+    def _start(self, spec: NodeSpec) -> None:
+        params = self.tmp / f"{spec.name}.yaml"
+        params.write_text(yaml.safe_dump({spec.name: {"ros__parameters": spec.parameters}}))
+        cmd = [str(find_executable(spec.executable)), "--ros-args", "-r", f"__node:={spec.name}",
+               "--params-file", str(params)]
+        out = None
+        if self.log_dir is not None:
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+            out = open(self.log_dir / f"{spec.name}.log", "ab")  # noqa: SIM115 - closed with the process
+        elif self.quiet:
+            out = subprocess.DEVNULL
+        self.procs[spec.name] = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT if out else None)
+
+    def _signal(self, signum, _frame) -> None:
+        self.stopping = True
+
+    def run(self, timeout_s: float | None = None) -> int:
+        """Start everything, supervise, shut down. Returns the until_exit node's exit code (or 0)."""
+        old = {s: signal.signal(s, self._signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        t0 = time.monotonic()
+        result = 0
+        try:
+            for spec in self.specs:
+                self._start(spec)
+            while not self.stopping:
+                time.sleep(0.1)
+                if timeout_s is not None and time.monotonic() - t0 > timeout_s:
+                    print(f"artrack launch: timeout after {timeout_s:.0f}s", file=sys.stderr)
+                    result = 124
+                    break
+                done = self._supervise()
+                if done is not None:
+                    result = done
+                    break
+        finally:
+            self.shutdown()
+            for s, handler in old.items():
+                signal.signal(s, handler)
+        return result
+
+    def _supervise(self) -> int | None:
+        for spec in self.specs:
+            proc = self.procs.get(spec.name)
+            if proc is None or proc.poll() is None:
+                continue
+            code = proc.returncode
+            self.exit_codes[spec.name] = code
+            if spec.until_exit:
+                return code
+            if self.restarts_left[spec.name] > 0:
+                self.restarts_left[spec.name] -= 1
+                print(f"artrack launch: {spec.name} exited ({code}); restarting", file=sys.stderr)
+                self._start(spec)
+            else:
+                del self.procs[spec.name]
+                print(f"artrack launch: {spec.name} exited ({code})", file=sys.stderr)
+        return None
+
+    def shutdown(self, grace_s: float = 5.0) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+            alive = [p for p in self.procs.values() if p.poll() is None]
+            if not alive:
+                break
+            for p in alive:
+                p.send_signal(sig)
+            deadline = time.monotonic() + grace_s
+            while time.monotonic() < deadline and any(p.poll() is None for p in alive):
+                time.sleep(0.05)
+
+
+def launch(graph_path: str, overrides: dict[str, Any] | None = None, timeout_s: float | None = None,
+           log_dir: str | None = None) -> int:
+    graph = read_yaml(graph_path)
+    specs = expand_graph(graph, Path(graph_path).name, overrides)
+    if not specs:
+        raise InputError(f"{graph_path}: no nodes to start")
+    return Launcher(specs, Path(log_dir) if log_dir else None).run(timeout_s)
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """`key=value` strings; values parsed as YAML (so true, 3, [a, b] work)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise InputError(f"--set '{item}': expected key=value")
+        key, value = item.split("=", 1)
+        out[key] = yaml.safe_load(value) if value else ""
+    return out

@@ -1,0 +1,363 @@
+"""Conversion between core data (artrack.types, Camera) and ROS messages.
+
+One adapter serves both worlds: the live graph passes rclpy message classes,
+the offline pipeline and the bag tools pass rosbags' pure-Python classes. Both
+accept every field as a keyword, so each converter builds messages through a
+:class:`MsgFactory` that maps a type name (``"artrack_msgs/msg/TrackedBody"``)
+to a class. Nothing here imports rclpy.
+
+Stamps are integer nanoseconds; all float fields are float64 on the wire, so a
+round trip is exact (tested), which is what lets the live graph and
+``artrack track`` agree to the last bit.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .cameras import Camera
+from .types import Blob2D, Blob3D, BodyEstimate, LinkEstimate, Prior2D
+
+WORLD_FRAME = "world"
+
+
+class MsgFactory:
+    """Builds messages by type name from a class lookup (rclpy or rosbags)."""
+
+    def __init__(self, lookup: Callable[[str], type]):
+        self._lookup = lookup
+        self._cache: dict[str, type] = {}
+
+    def cls(self, name: str) -> type:
+        if name not in self._cache:
+            self._cache[name] = self._lookup(name)
+        return self._cache[name]
+
+    def __call__(self, _type_name: str, /, **fields: Any) -> Any:
+        # positional-only: message fields such as LinkState.name pass through **fields
+        return self.cls(_type_name)(**fields)
+
+
+def rclpy_factory() -> MsgFactory:
+    """Factory over the generated rclpy message modules (needs the workspace)."""
+
+    def lookup(name: str) -> type:
+        pkg, sub, cls = name.split("/")
+        return getattr(importlib.import_module(f"{pkg}.{sub}"), cls)
+
+    return MsgFactory(lookup)
+
+
+def rosbags_factory() -> MsgFactory:
+    """Factory over rosbags' typestore with the artrack types registered."""
+    from .bags import typestore
+
+    store = typestore()
+    return MsgFactory(lambda name: store.types[name])
+
+
+# --------------------------------------------------------------------- time
+
+
+def time_msg(f: MsgFactory, stamp_ns: int) -> Any:
+    """builtin_interfaces/Time from integer nanoseconds."""
+    stamp_ns = int(stamp_ns)
+    return f("builtin_interfaces/msg/Time", sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
+
+
+def ns_from_time(t: Any) -> int:
+    """Integer nanoseconds from a builtin_interfaces/Time."""
+    return int(t.sec) * 1_000_000_000 + int(t.nanosec)
+
+
+def header_msg(f: MsgFactory, stamp_ns: int, frame_id: str) -> Any:
+    return f("std_msgs/msg/Header", stamp=time_msg(f, stamp_ns), frame_id=frame_id)
+
+
+def _arr(values: Any, n: int | None = None) -> np.ndarray:
+    a = np.asarray(values, dtype=np.float64).reshape(-1)
+    if n is not None and a.size != n:
+        raise ValueError(f"expected {n} values, got {a.size}")
+    return a
+
+
+def _point(f: MsgFactory, p: np.ndarray) -> Any:
+    return f("geometry_msgs/msg/Point", x=float(p[0]), y=float(p[1]), z=float(p[2]))
+
+
+def _xyz(p: Any) -> list[float]:
+    return [p.x, p.y, p.z]
+
+
+# -------------------------------------------------------------------- blobs
+
+
+def blob_array_msg(
+    f: MsgFactory,
+    stamp_ns: int,
+    camera: str,
+    frame_id: str,
+    blobs: list[Blob2D],
+    prior_stamp_ns: int | None = None,
+) -> Any:
+    """artrack_msgs/Blob2DArray for one camera image."""
+    items = [
+        f(
+            "artrack_msgs/msg/Blob2D",
+            label=b.label,
+            mean=_arr(b.mean, 2),
+            covariance=_arr(b.cov, 4),
+            color_mean=_arr(b.color_mean, 3),
+            color_covariance=_arr(b.color_cov, 9),
+            pixel_count=int(b.pixel_count),
+        )
+        for b in blobs
+    ]
+    used = prior_stamp_ns is not None
+    return f(
+        "artrack_msgs/msg/Blob2DArray",
+        header=header_msg(f, stamp_ns, frame_id),
+        camera_name=camera,
+        blobs=items,
+        prior_used=used,
+        prior_stamp=time_msg(f, prior_stamp_ns if used else 0),
+        prior_staleness=(stamp_ns - prior_stamp_ns) * 1e-9 if used else 0.0,
+    )
+
+
+def blobs_from_msg(msg: Any) -> tuple[int, str, list[Blob2D]]:
+    """(stamp_ns, camera_name, blobs) from an artrack_msgs/Blob2DArray."""
+    blobs = [
+        Blob2D(
+            label=b.label,
+            mean=np.array(b.mean, dtype=np.float64),
+            cov=np.array(b.covariance, dtype=np.float64).reshape(2, 2),
+            color_mean=np.array(b.color_mean, dtype=np.float64),
+            color_cov=np.array(b.color_covariance, dtype=np.float64).reshape(3, 3),
+            pixel_count=int(b.pixel_count),
+        )
+        for b in msg.blobs
+    ]
+    return ns_from_time(msg.header.stamp), msg.camera_name, blobs
+
+
+def prior_array_msg(f: MsgFactory, stamp_ns: int, camera: str, frame_id: str, priors: list[Prior2D]) -> Any:
+    """artrack_msgs/BlobPrior2DArray; ``stamp_ns`` is the frame the priors predict."""
+    items = [
+        f(
+            "artrack_msgs/msg/BlobPrior2D",
+            label=p.label,
+            mean=_arr(p.mean, 2),
+            covariance=_arr(p.cov, 4),
+            confidence=float(p.confidence),
+            visibility=int(p.visibility),
+        )
+        for p in priors
+    ]
+    return f(
+        "artrack_msgs/msg/BlobPrior2DArray",
+        header=header_msg(f, stamp_ns, frame_id),
+        camera_name=camera,
+        priors=items,
+    )
+
+
+def priors_from_msg(msg: Any) -> tuple[int, str, list[Prior2D]]:
+    """(predicted stamp_ns, camera_name, priors) from a BlobPrior2DArray."""
+    stamp = ns_from_time(msg.header.stamp)
+    priors = [
+        Prior2D(
+            label=p.label,
+            mean=np.array(p.mean, dtype=np.float64),
+            cov=np.array(p.covariance, dtype=np.float64).reshape(2, 2),
+            confidence=float(p.confidence),
+            visibility=int(p.visibility),
+            stamp_ns=stamp,
+        )
+        for p in msg.priors
+    ]
+    return stamp, msg.camera_name, priors
+
+
+# --------------------------------------------------------------------- body
+
+
+def body_msg(f: MsgFactory, est: BodyEstimate, frame_id: str = WORLD_FRAME, body_id: int = 0) -> Any:
+    """artrack_msgs/TrackedBody from a BodyEstimate (world frame)."""
+    links = []
+    for link in est.links:
+        q = Rotation.from_matrix(link.rotation).as_quat()  # x, y, z, w
+        pose = f(
+            "geometry_msgs/msg/Pose",
+            position=_point(f, link.position),
+            orientation=f("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]),
+        )
+        v, w = link.velocity, link.angular_velocity
+        twist = f(
+            "geometry_msgs/msg/Twist",
+            linear=f("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2])),
+            angular=f("geometry_msgs/msg/Vector3", x=float(w[0]), y=float(w[1]), z=float(w[2])),
+        )
+        links.append(
+            f("artrack_msgs/msg/LinkState", name=link.name, pose=pose, velocity=twist, covariance=_arr(link.cov, 36))
+        )
+    return f(
+        "artrack_msgs/msg/TrackedBody",
+        header=header_msg(f, est.stamp_ns, frame_id),
+        body_id=int(body_id),
+        status=int(est.status),
+        quality=float(est.quality),
+        links=links,
+        joint_names=list(est.joint_names),
+        joints=[_point(f, p) for p in np.asarray(est.joints, dtype=np.float64).reshape(-1, 3)],
+        blob_labels=[b.label for b in est.blobs],
+        blob_means=[_point(f, b.mean) for b in est.blobs],
+        blob_covariances=np.concatenate([_arr(b.cov, 9) for b in est.blobs]) if est.blobs else np.zeros(0),
+    )
+
+
+def body_from_msg(msg: Any) -> BodyEstimate:
+    """BodyEstimate from an artrack_msgs/TrackedBody."""
+    links = []
+    for ls in msg.links:
+        o = ls.pose.orientation
+        links.append(
+            LinkEstimate(
+                name=ls.name,
+                position=np.array(_xyz(ls.pose.position)),
+                rotation=Rotation.from_quat([o.x, o.y, o.z, o.w]).as_matrix(),
+                velocity=np.array(_xyz(ls.velocity.linear)),
+                angular_velocity=np.array(_xyz(ls.velocity.angular)),
+                cov=np.array(ls.covariance, dtype=np.float64).reshape(6, 6),
+            )
+        )
+    covs = np.array(msg.blob_covariances, dtype=np.float64).reshape(-1, 3, 3)
+    blobs = [
+        Blob3D(label=label, mean=np.array(_xyz(m)), cov=covs[i].copy())
+        for i, (label, m) in enumerate(zip(msg.blob_labels, msg.blob_means, strict=True))
+    ]
+    return BodyEstimate(
+        stamp_ns=ns_from_time(msg.header.stamp),
+        joint_names=list(msg.joint_names),
+        joints=np.array([_xyz(p) for p in msg.joints], dtype=np.float64).reshape(-1, 3),
+        links=links,
+        blobs=blobs,
+        status=int(msg.status),
+        quality=float(msg.quality),
+    )
+
+
+# ------------------------------------------------------------------ cameras
+
+
+def camera_info_msg(f: MsgFactory, camera: Camera, stamp_ns: int) -> Any:
+    """sensor_msgs/CameraInfo (plumb_bob) with P = K [I | 0]."""
+    P = np.zeros((3, 4))
+    P[:, :3] = camera.K
+    roi = f("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return f(
+        "sensor_msgs/msg/CameraInfo",
+        header=header_msg(f, stamp_ns, camera.frame_id),
+        height=int(camera.height),
+        width=int(camera.width),
+        distortion_model="plumb_bob",
+        d=_arr(camera.dist),
+        k=_arr(camera.K, 9),
+        r=_arr(np.eye(3), 9),
+        p=_arr(P, 12),
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+    )
+
+
+def extrinsics_msg(f: MsgFactory, camera: Camera, stamp_ns: int, world_frame: str = WORLD_FRAME) -> Any:
+    """geometry_msgs/TransformStamped world -> camera optical frame (world_from_camera)."""
+    world_from_cam_R = camera.R.T
+    c = camera.center
+    q = Rotation.from_matrix(world_from_cam_R).as_quat()
+    tf = f(
+        "geometry_msgs/msg/Transform",
+        translation=f("geometry_msgs/msg/Vector3", x=float(c[0]), y=float(c[1]), z=float(c[2])),
+        rotation=f("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]),
+    )
+    return f(
+        "geometry_msgs/msg/TransformStamped",
+        header=header_msg(f, stamp_ns, world_frame),
+        child_frame_id=camera.frame_id,
+        transform=tf,
+    )
+
+
+def camera_from_msgs(name: str, info: Any, extrinsics: Any | None) -> Camera:
+    """Camera from a CameraInfo (ROS 2 ``k``/``d`` or ROS 1 ``K``/``D``) and, optionally,
+    its world->optical TransformStamped. Raises CalibrationError on malformed fields."""
+    k = getattr(info, "k", None)
+    k = info.K if k is None else k
+    d = getattr(info, "d", None)
+    d = info.D if d is None else d
+    R, t = None, None
+    if extrinsics is not None:
+        tr = extrinsics.transform
+        q = tr.rotation
+        world_from_cam = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+        R = world_from_cam.T
+        t = -R @ np.array([tr.translation.x, tr.translation.y, tr.translation.z])
+    return Camera.from_camera_info(name, int(info.width), int(info.height), k, np.asarray(d, dtype=float), R, t)
+
+
+# ------------------------------------------------------------------- images
+
+
+@dataclass(frozen=True)
+class ImageEncoding:
+    channels: int
+    to_bgr: Callable[[np.ndarray], np.ndarray] | None
+
+
+def _swap_rb(img: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(img[..., 2::-1])
+
+
+ENCODINGS = {
+    "bgr8": ImageEncoding(3, None),
+    "rgb8": ImageEncoding(3, _swap_rb),
+    "bgra8": ImageEncoding(4, lambda a: np.ascontiguousarray(a[..., :3])),
+    "rgba8": ImageEncoding(4, lambda a: _swap_rb(a[..., :3])),
+    "mono8": ImageEncoding(1, lambda a: np.ascontiguousarray(np.repeat(a, 3, axis=2))),
+}
+
+
+def image_msg(f: MsgFactory, image_bgr: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
+    """sensor_msgs/Image (bgr8) from an (H, W, 3) uint8 BGR array."""
+    img = np.ascontiguousarray(image_bgr, dtype=np.uint8)
+    h, w = img.shape[:2]
+    return f(
+        "sensor_msgs/msg/Image",
+        header=header_msg(f, stamp_ns, frame_id),
+        height=h,
+        width=w,
+        encoding="bgr8",
+        is_bigendian=0,
+        step=w * 3,
+        data=img.reshape(-1),
+    )
+
+
+def bgr_from_image_msg(msg: Any, where: str = "image") -> np.ndarray:
+    """(H, W, 3) uint8 BGR from a sensor_msgs/Image; ValueError names the bad field."""
+    enc = ENCODINGS.get(msg.encoding)
+    if enc is None:
+        raise ValueError(f"{where}: unsupported encoding '{msg.encoding}' (field 'encoding')")
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data, dtype=np.uint8)
+    if step < w * enc.channels or data.size < h * step:
+        raise ValueError(f"{where}: data has {data.size} bytes, expected {h}x{step} (fields 'height'/'step')")
+    img = data[: h * step].reshape(h, step)[:, : w * enc.channels].reshape(h, w, enc.channels)
+    return img.copy() if enc.to_bgr is None else enc.to_bgr(img)

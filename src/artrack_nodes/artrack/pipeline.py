@@ -1,0 +1,195 @@
+"""The closed loop of ALGORITHMS.md §1, as three stages.
+
+    images --BlobStage--> 2-D blobs --SkeletonStage--> body(t), prediction(t+1)
+                 ^                                              |
+                 +------------- 2-D priors <--ProjectionStage---+
+
+Each stage is the whole state and computation of one node of the live graph
+(`blob_features` holds one BlobStage per camera, `skeleton` one SkeletonStage,
+`feedback_projection` one ProjectionStage). :class:`ClosedLoopPipeline`
+composes the same three objects for `artrack track`, so the offline pipeline
+and the live graph run identical code in the identical order. Between stages
+the offline pipeline passes every value through the same message conversion
+the nodes use (:class:`WireRoundTrip`), so both see bit-identical inputs (a
+quaternion round trip alone perturbs a rotation by ~1e-16, which a closed
+loop can amplify); a process-level test checks that their joints agree to 1e-9.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .blobs import BlobTracker2D, BlobTrackerConfig
+from .body_model import BodyModel
+from .cameras import Camera
+from .messages import (
+    blob_array_msg,
+    blobs_from_msg,
+    body_from_msg,
+    body_msg,
+    camera_from_msgs,
+    camera_info_msg,
+    extrinsics_msg,
+    prior_array_msg,
+    priors_from_msg,
+    rosbags_factory,
+)
+from .projection import project_priors
+from .skeleton import make_estimator
+from .types import Blob2D, BodyEstimate, Prior2D
+
+
+@dataclass
+class PipelineConfig:
+    """Options shared by the nodes and ``artrack track`` (see config/*.yaml)."""
+
+    estimator: str = "kinematic"
+    feedback: bool = True
+    fps: float = 30.0
+    blob: BlobTrackerConfig = field(default_factory=BlobTrackerConfig)
+    skeleton: dict[str, Any] = field(default_factory=dict)
+
+
+class FrameClock:
+    """Predicts the stamp of the next frame: last interval, or 1/fps at start."""
+
+    def __init__(self, fps: float):
+        if fps <= 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        self.default_dt_ns = int(round(1e9 / fps))
+        self.last_ns: int | None = None
+
+    def next_stamp(self, stamp_ns: int) -> int:
+        dt = self.default_dt_ns
+        if self.last_ns is not None and 0 < stamp_ns - self.last_ns < 10 * self.default_dt_ns:
+            dt = stamp_ns - self.last_ns
+        self.last_ns = stamp_ns
+        return stamp_ns + dt
+
+
+def blob_colour_classes(body: BodyModel) -> dict[str, str]:
+    """Colour class ('skin', 'shirt', ...) of each blob-carrying link."""
+    return {link.name: link.blob.colour for link in body.links if link.blob is not None}
+
+
+class BlobStage:
+    """One camera's 2-D blob tracker, fed with the priors for its frame (§1)."""
+
+    def __init__(self, camera_name: str, body: BodyModel, config: PipelineConfig):
+        self.camera_name = camera_name
+        self.feedback = config.feedback
+        self.tracker = BlobTracker2D(camera_name, list(body.blob_labels), blob_colour_classes(body), config.blob)
+
+    def step(self, image_bgr: np.ndarray, priors: list[Prior2D] | None) -> list[Blob2D]:
+        return self.tracker.step(image_bgr, priors if self.feedback else None)
+
+
+class SkeletonStage:
+    """The 3-D estimator: update with all cameras' blobs, predict the next frame."""
+
+    def __init__(self, body: BodyModel, cameras: list[Camera], config: PipelineConfig):
+        self.estimator = make_estimator(config.estimator, body, cameras, config.skeleton)
+        self.clock = FrameClock(config.fps)
+
+    def step(self, stamp_ns: int, blobs_by_camera: Mapping[str, list[Blob2D]]) -> tuple[BodyEstimate, BodyEstimate]:
+        ordered = {name: blobs_by_camera[name] for name in sorted(blobs_by_camera)}
+        estimate = self.estimator.update(stamp_ns, ordered)
+        prediction = self.estimator.predict(self.clock.next_stamp(stamp_ns))
+        return estimate, prediction
+
+
+class ProjectionStage:
+    """Feedback projection of the predicted 3-D blobs into every camera (§1)."""
+
+    def __init__(self, body: BodyModel, cameras: list[Camera]):
+        self.body = body
+        self.cameras = sorted(cameras, key=lambda c: c.name)
+
+    def step(self, prediction: BodyEstimate) -> dict[str, list[Prior2D]]:
+        return project_priors(prediction, self.cameras, self.body)
+
+
+@dataclass
+class FrameResult:
+    stamp_ns: int
+    blobs: dict[str, list[Blob2D]]
+    estimate: BodyEstimate
+    prediction: BodyEstimate
+    priors_used: dict[str, list[Prior2D] | None]
+    next_priors: dict[str, list[Prior2D]]
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class WireRoundTrip:
+    """The message conversions of the live graph, applied between offline stages."""
+
+    def __init__(self):
+        self.f = rosbags_factory()
+
+    def blobs(self, stamp_ns: int, camera: str, blobs: list[Blob2D]) -> list[Blob2D]:
+        return blobs_from_msg(blob_array_msg(self.f, stamp_ns, camera, camera, blobs))[2]
+
+    def priors(self, camera: str, priors: list[Prior2D], stamp_ns: int) -> list[Prior2D]:
+        return priors_from_msg(prior_array_msg(self.f, stamp_ns, camera, camera, priors))[2]
+
+    def body(self, body: BodyEstimate) -> BodyEstimate:
+        return body_from_msg(body_msg(self.f, body))
+
+    def camera(self, camera: Camera) -> Camera:
+        """As the nodes see it: published by bag_player / camera_ingest, rebuilt by subscribers."""
+        return camera_from_msgs(camera.name, camera_info_msg(self.f, camera, 0), extrinsics_msg(self.f, camera, 0))
+
+
+class ClosedLoopPipeline:
+    """All three stages in one process: the offline form of the live graph."""
+
+    def __init__(self, body: BodyModel, cameras: list[Camera], config: PipelineConfig | None = None):
+        self.config = config or PipelineConfig()
+        self.wire = WireRoundTrip()
+        self.cameras = sorted((self.wire.camera(c) for c in cameras), key=lambda c: c.name)
+        self.blob_stages = {c.name: BlobStage(c.name, body, self.config) for c in self.cameras}
+        self.skeleton = SkeletonStage(body, self.cameras, self.config)
+        self.projection = ProjectionStage(body, self.cameras)
+        self.priors: dict[str, list[Prior2D]] = {}
+        self.frames = 0
+
+    def step(self, stamp_ns: int, images: Mapping[str, np.ndarray]) -> FrameResult:
+        blobs: dict[str, list[Blob2D]] = {}
+        used: dict[str, list[Prior2D] | None] = {}
+        t0 = time.perf_counter()
+        for name in sorted(images):
+            stage = self.blob_stages.get(name)
+            if stage is None:
+                raise KeyError(f"unknown camera '{name}' (not in the calibration)")
+            priors = self.priors.get(name) if self.frames > 0 else None
+            used[name] = priors
+            blobs[name] = self.wire.blobs(stamp_ns, name, stage.step(images[name], priors))
+        t1 = time.perf_counter()
+        estimate, prediction = self.skeleton.step(stamp_ns, blobs)
+        t2 = time.perf_counter()
+        projected = self.projection.step(self.wire.body(prediction))
+        self.priors = {name: self.wire.priors(name, p, prediction.stamp_ns) for name, p in projected.items()}
+        t3 = time.perf_counter()
+        self.frames += 1
+        timings = {"blobs_2d": (t1 - t0) * 1e3, "skeleton_3d": (t2 - t1) * 1e3, "projection": (t3 - t2) * 1e3}
+        return FrameResult(stamp_ns, blobs, estimate, prediction, used, self.priors, timings)
+
+
+def load_pipeline_config(
+    estimator: str = "kinematic",
+    feedback: bool = True,
+    fps: float = 30.0,
+    blob_config: str | None = None,
+    skeleton_config: str | None = None,
+) -> PipelineConfig:
+    """PipelineConfig from the switches and the two tunables files in config/."""
+    from .config import config_path, load_dataclass_yaml, read_yaml
+
+    blob = load_dataclass_yaml(config_path(blob_config, "blob_features.yaml"), BlobTrackerConfig)
+    skeleton = read_yaml(config_path(skeleton_config, "skeleton.yaml"))
+    return PipelineConfig(estimator=estimator, feedback=feedback, fps=fps, blob=blob, skeleton=skeleton)

@@ -1,0 +1,122 @@
+"""bag_player: replays a recording's cameras into the graph.
+
+Reads rosbag2 (mcap or sqlite3) and ROS 1 bags (images raw or compressed) and
+publishes /cameras/<cam>/image_raw, camera_info and extrinsics. Lockstep mode
+publishes frame t+1 only after /artrack/body for frame t has come back (the
+loop has closed), so a replay is reproducible; real-time mode paces frames by
+their stamps times 1/rate. Exits when the recording ends.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from rclpy.node import Node
+
+from artrack.bags import read_scene
+from artrack.errors import ArtrackError
+from artrack.messages import ns_from_time
+
+from .common import BODY_TOPIC, RESULT_QOS, CameraPublishers, declare_all, msgs, run_node
+
+PARAMS = [
+    ("bag", "", "recording to play: rosbag2 folder or .mcap/.db3 file, or ROS 1 .bag"),
+    ("lockstep", True, "publish frame t+1 only after the body for frame t arrived"),
+    ("rate", 1.0, "real-time mode: playback speed factor"),
+    ("cameras", [""], "cameras to play (empty: all in the bag)"),
+    ("start_timeout_s", 30.0, "wait this long for the graph's subscribers before starting, s"),
+    ("frame_timeout_s", 30.0, "lockstep: wait this long for a frame's body before going on, s"),
+    ("max_frames", 0, "stop after this many frames (0: all)"),
+    ("linger_s", 1.0, "after the last frame, keep running this long, s"),
+    ("wait_for_recorder", False, "also wait until a recorder subscribes to /artrack/body before starting"),
+]
+
+
+class BagPlayerNode(Node):
+    def __init__(self):
+        super().__init__("bag_player")
+        p = declare_all(self, PARAMS)
+        self.p = p
+        if not p["bag"]:
+            raise SystemExit("bag_player: parameter 'bag' is empty")
+        wanted = [c for c in p["cameras"] if c]
+        self.scene = read_scene(p["bag"])
+        cameras = [c for c in self.scene.cameras if not wanted or c.name in wanted]
+        unknown = sorted(set(wanted) - {c.name for c in self.scene.cameras})
+        if unknown:
+            raise ArtrackError(f"{p['bag']}: no camera named '{unknown[0]}'")
+        self.names = [c.name for c in cameras]
+        self.frames = self.scene.frames()
+        self.pubs = CameraPublishers(self, cameras, reliable_images=bool(p["lockstep"]))
+        self.create_subscription(msgs().cls("artrack_msgs/msg/TrackedBody"), BODY_TOPIC, self.on_body, RESULT_QOS)
+        self.lockstep = bool(p["lockstep"])
+        self.state = "wait_graph"
+        self.t_state = time.monotonic()
+        self.sent = 0
+        self.waiting_for: int | None = None
+        self.bodies_seen: set[int] = set()
+        self.t0_wall = self.t0_stamp = None
+        self.next_frame = None
+        self.timer = self.create_timer(0.002, self.tick)
+        self.get_logger().info(f"playing {p['bag']} ({len(self.names)} cameras, lockstep={self.lockstep})")
+
+    def on_body(self, msg) -> None:
+        self.bodies_seen.add(ns_from_time(msg.header.stamp))
+
+    def _graph_ready(self) -> bool:
+        if self.pubs.subscriber_count() < 1:
+            return False
+        if self.p["wait_for_recorder"] and self.count_subscribers(BODY_TOPIC) < 2:  # the player + a recorder
+            return False
+        return not self.lockstep or self.count_publishers(BODY_TOPIC) >= 1
+
+    def _advance(self) -> bool:
+        if self.p["max_frames"] and self.sent >= int(self.p["max_frames"]):
+            return False
+        self.next_frame = next(self.frames, None)
+        return self.next_frame is not None
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        if self.state == "wait_graph":
+            if self._graph_ready() or now - self.t_state > float(self.p["start_timeout_s"]):
+                if not self._graph_ready():
+                    self.get_logger().warning("graph not complete after start_timeout_s; playing anyway")
+                time.sleep(0.5)  # let late discovery of the remaining endpoints settle
+                self.state = "play" if self._advance() else "linger"
+                self.t_state = time.monotonic()
+            return
+        if self.state == "wait_body":
+            if self.waiting_for in self.bodies_seen or now - self.t_state > float(self.p["frame_timeout_s"]):
+                if self.waiting_for not in self.bodies_seen:
+                    self.get_logger().warning(f"no body for frame {self.waiting_for}; going on")
+                self.state = "play" if self._advance() else "linger"
+                self.t_state = now
+            return
+        if self.state == "play":
+            stamp, images = self.next_frame
+            if not self.lockstep:
+                if self.t0_wall is None:
+                    self.t0_wall, self.t0_stamp = now, stamp
+                due = self.t0_wall + (stamp - self.t0_stamp) * 1e-9 / float(self.p["rate"])
+                if now < due:
+                    return
+            self.pubs.publish_images(stamp, {n: images[n] for n in self.names if n in images})
+            self.sent += 1
+            if self.lockstep:
+                self.waiting_for, self.state, self.t_state = stamp, "wait_body", now
+            elif not self._advance():
+                self.state, self.t_state = "linger", now
+            return
+        if self.state == "linger" and now - self.t_state > float(self.p["linger_s"]):
+            self.get_logger().info(f"done: {self.sent} frames")
+            raise SystemExit(0)
+
+
+def main(args=None) -> None:
+    sys.exit(run_node(BagPlayerNode, __doc__, PARAMS, args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,183 @@
+"""Shared node plumbing: named QoS profiles, topic names, parameters, main().
+
+Nodes only translate messages, parameters and timing; all algorithms live in
+the ROS-free ``artrack`` package (docs/ARCHITECTURE.md).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+
+from artrack.errors import ArtrackError
+from artrack.messages import MsgFactory, rclpy_factory
+
+#: Images in free-running mode: best effort, keep last 5 (REP 2003 sensor data).
+IMAGE_QOS_SENSOR = qos_profile_sensor_data
+#: Images in lockstep mode: every frame must arrive.
+IMAGE_QOS_RELIABLE = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE
+)
+#: Results (blobs, priors, bodies): reliable, depth 10.
+RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+#: Latched per-camera data (camera_info, extrinsics): late joiners get the last one.
+LATCHED_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+BODY_TOPIC = "/artrack/body"
+PREDICTION_TOPIC = "/artrack/prediction"
+GROUND_TRUTH_TOPIC = "/artrack/ground_truth"
+
+
+def camera_topic(camera: str, leaf: str) -> str:
+    """/cameras/<camera>/<leaf>: image_raw, camera_info, extrinsics, blobs, blob_priors."""
+    return f"/cameras/{camera}/{leaf}"
+
+
+_factory: MsgFactory | None = None
+
+
+def msgs() -> MsgFactory:
+    """The rclpy message factory (one per process)."""
+    global _factory
+    if _factory is None:
+        _factory = rclpy_factory()
+    return _factory
+
+
+def declare(node: Node, name: str, default: Any, description: str) -> Any:
+    """Declare a parameter with a default and a description; return its value."""
+    return node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+
+
+def print_help(prog: str, doc: str, params: list[tuple[str, Any, str]]) -> None:
+    print(f"usage: {prog} [--ros-args -p NAME:=VALUE ... | --params-file FILE]\n")
+    print(doc.strip() + "\n\nparameters (default):")
+    for name, default, desc in params:
+        print(f"  {name} ({default!r}): {desc}")
+
+
+def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, str]], args=None) -> int:
+    """main() for every node: --help, init, spin, clean shutdown. Returns the exit code."""
+    argv = list(sys.argv if args is None else args)
+    if any(a in ("-h", "--help") for a in argv[1:]):
+        print_help(os.path.basename(argv[0]), doc, params)
+        return 0
+    rclpy.init(args=argv)
+    node = None
+    code = 0
+    try:
+        node = make()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except SystemExit as exc:  # a node asking to stop (e.g. the player at the end of the bag)
+        if isinstance(exc.code, str):
+            print(exc.code, file=sys.stderr)
+            code = 1
+        else:
+            code = int(exc.code or 0)
+    except ArtrackError as exc:  # bad input at start-up: one line, non-zero exit
+        print(f"{os.path.basename(argv[0])}: {exc}", file=sys.stderr)
+        code = 1
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return code
+
+
+Params = list[tuple[str, Any, str]]
+
+
+def declare_all(node: Node, params: Params) -> dict[str, Any]:
+    """Declare every (name, default, description) of a node; return the values."""
+    return {name: declare(node, name, default, desc) for name, default, desc in params}
+
+
+class CameraPublishers:
+    """Publishes images, camera_info and extrinsics of a camera rig (player and ingest)."""
+
+    def __init__(self, node: Node, cameras: list, reliable_images: bool):
+        f = msgs()
+        self.node = node
+        self.cameras = {c.name: c for c in cameras}
+        qos = IMAGE_QOS_RELIABLE if reliable_images else IMAGE_QOS_SENSOR
+        self.image_pub = {n: node.create_publisher(f.cls("sensor_msgs/msg/Image"), camera_topic(n, "image_raw"), qos)
+                          for n in self.cameras}
+        self.info_pub = {n: node.create_publisher(f.cls("sensor_msgs/msg/CameraInfo"),
+                                                  camera_topic(n, "camera_info"), LATCHED_QOS) for n in self.cameras}
+        self.extr_pub = {n: node.create_publisher(f.cls("geometry_msgs/msg/TransformStamped"),
+                                                  camera_topic(n, "extrinsics"), LATCHED_QOS) for n in self.cameras}
+        self.publish_calibration(0)
+
+    def publish_calibration(self, stamp_ns: int) -> None:
+        from artrack.messages import camera_info_msg, extrinsics_msg
+
+        f = msgs()
+        for name, cam in self.cameras.items():
+            self.info_pub[name].publish(camera_info_msg(f, cam, stamp_ns))
+            self.extr_pub[name].publish(extrinsics_msg(f, cam, stamp_ns))
+
+    def publish_images(self, stamp_ns: int, images: dict) -> None:
+        from artrack.messages import image_msg
+
+        f = msgs()
+        for name in sorted(images):
+            if name in self.image_pub:
+                self.image_pub[name].publish(image_msg(f, images[name], stamp_ns, self.cameras[name].frame_id))
+
+    def subscriber_count(self) -> int:
+        """Smallest number of subscribers over the image topics."""
+        return min((p.get_subscription_count() for p in self.image_pub.values()), default=0)
+
+
+class CameraRigListener:
+    """Collects camera_info + extrinsics of named cameras; `.cameras()` once complete."""
+
+    def __init__(self, node: Node, camera_names: list[str], on_complete: Callable[[list], None] | None = None):
+        f = msgs()
+        self.names = list(camera_names)
+        self.info: dict[str, Any] = {}
+        self.extr: dict[str, Any] = {}
+        self.on_complete = on_complete
+        self.done = False
+        for n in self.names:
+            node.create_subscription(f.cls("sensor_msgs/msg/CameraInfo"), camera_topic(n, "camera_info"),
+                                     lambda m, n=n: self._got(self.info, n, m), LATCHED_QOS)
+            node.create_subscription(f.cls("geometry_msgs/msg/TransformStamped"), camera_topic(n, "extrinsics"),
+                                     lambda m, n=n: self._got(self.extr, n, m), LATCHED_QOS)
+
+    def _got(self, store: dict, name: str, msg: Any) -> None:
+        store[name] = msg
+        if not self.done and all(n in self.info and n in self.extr for n in self.names):
+            self.done = True
+            if self.on_complete is not None:
+                self.on_complete(self.cameras())
+
+    def cameras(self) -> list:
+        from artrack.messages import camera_from_msgs
+
+        return [camera_from_msgs(n, self.info[n], self.extr[n]) for n in self.names]

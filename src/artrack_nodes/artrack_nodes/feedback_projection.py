@@ -1,0 +1,69 @@
+"""feedback_projection: predicted 3-D blobs -> 2-D priors in every camera
+(ALGORITHMS.md §1, "Inverse observation model").
+
+Subscribes /artrack/prediction and the cameras' camera_info/extrinsics;
+publishes /cameras/<cam>/blob_priors stamped with the frame they predict.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from rclpy.node import Node
+
+from artrack.body_model import load_body_model
+from artrack.errors import ArtrackError
+from artrack.messages import body_from_msg, prior_array_msg
+from artrack.pipeline import ProjectionStage
+
+from .common import PREDICTION_TOPIC, RESULT_QOS, CameraRigListener, camera_topic, declare_all, msgs, run_node
+
+PARAMS = [
+    ("camera_names", ["cam01", "cam02", "cam03", "cam04"], "cameras to project into"),
+    ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
+]
+
+
+class FeedbackProjectionNode(Node):
+    def __init__(self):
+        super().__init__("feedback_projection")
+        p = declare_all(self, PARAMS)
+        self.names = list(p["camera_names"])
+        self.body = load_body_model(p["body_model"] or None)
+        self.stage: ProjectionStage | None = None
+        self.waiting: list = []
+        f = msgs()
+        self.pubs = {n: self.create_publisher(f.cls("artrack_msgs/msg/BlobPrior2DArray"),
+                                              camera_topic(n, "blob_priors"), RESULT_QOS) for n in self.names}
+        self.rig = CameraRigListener(self, self.names, self.on_cameras)
+        self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), PREDICTION_TOPIC, self.on_prediction,
+                                 RESULT_QOS)
+
+    def on_cameras(self, cameras) -> None:
+        self.stage = ProjectionStage(self.body, cameras)
+        for msg in self.waiting:
+            self.on_prediction(msg)
+        self.waiting.clear()
+
+    def on_prediction(self, msg) -> None:
+        if self.stage is None:
+            self.waiting.append(msg)
+            return
+        try:
+            prediction = body_from_msg(msg)
+            priors = self.stage.step(prediction)
+        except (ArtrackError, ValueError, AttributeError) as exc:
+            self.get_logger().error(f"dropped bad prediction on {PREDICTION_TOPIC}: {exc}")
+            return
+        f = msgs()
+        for name in self.names:
+            self.pubs[name].publish(prior_array_msg(f, prediction.stamp_ns, name, f"{name}_optical_frame",
+                                                    priors.get(name, [])))
+
+
+def main(args=None) -> None:
+    sys.exit(run_node(FeedbackProjectionNode, __doc__, PARAMS, args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,127 @@
+"""skeleton: the 3-D body estimator (ALGORITHMS.md §1: 3-D blobs, Kalman filters,
+virtual-work constraint solver; or the triangulate-and-fit baseline).
+
+Subscribes every camera's /cameras/<cam>/blobs (plus camera_info and
+extrinsics), and once all cameras have reported a frame (or, free-running,
+after sync_timeout_s) publishes /artrack/body (the estimate at that frame) and
+/artrack/prediction (the body predicted for the next frame, which
+feedback_projection turns into 2-D priors).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from rclpy.node import Node
+
+from artrack.body_model import load_body_model
+from artrack.errors import ArtrackError
+from artrack.messages import blobs_from_msg, body_msg
+from artrack.pipeline import SkeletonStage, load_pipeline_config
+
+from .common import (
+    BODY_TOPIC,
+    PREDICTION_TOPIC,
+    RESULT_QOS,
+    CameraRigListener,
+    camera_topic,
+    declare_all,
+    msgs,
+    run_node,
+)
+
+PARAMS = [
+    ("camera_names", ["cam01", "cam02", "cam03", "cam04"], "cameras whose blobs are fused"),
+    ("estimator", "kinematic", "baseline (raw triangulate-and-fit) | kinematic | dynamic"),
+    ("fps", 30.0, "nominal frame rate, Hz (first prediction interval)"),
+    ("lockstep", False, "wait for every camera's blobs of a frame (no timeout)"),
+    ("sync_timeout_s", 0.1, "free-running: process a frame with the cameras that reported after this long, s"),
+    ("body_id", 0, "id published in TrackedBody.body_id"),
+    ("world_frame", "world", "frame_id of the published bodies"),
+    ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
+    ("skeleton_config", "", "estimator tunables YAML (empty: config/skeleton.yaml)"),
+]
+
+
+class SkeletonNode(Node):
+    def __init__(self):
+        super().__init__("skeleton")
+        p = declare_all(self, PARAMS)
+        self.p = p
+        self.names = list(p["camera_names"])
+        self.lockstep = bool(p["lockstep"])
+        self.body = load_body_model(p["body_model"] or None)
+        self.config = load_pipeline_config(estimator=p["estimator"], fps=float(p["fps"]),
+                                           skeleton_config=p["skeleton_config"])
+        self.stage: SkeletonStage | None = None
+        self.pending: dict[int, dict] = {}
+        self.first_seen: dict[int, float] = {}
+        self.last_done = -1
+        f = msgs()
+        body_cls = f.cls("artrack_msgs/msg/TrackedBody")
+        self.body_pub = self.create_publisher(body_cls, BODY_TOPIC, RESULT_QOS)
+        self.pred_pub = self.create_publisher(body_cls, PREDICTION_TOPIC, RESULT_QOS)
+        self.rig = CameraRigListener(self, self.names, self.on_cameras)
+        for n in self.names:
+            self.create_subscription(f.cls("artrack_msgs/msg/Blob2DArray"), camera_topic(n, "blobs"),
+                                     self.on_blobs, RESULT_QOS)
+        self.create_timer(0.02, self.flush)
+        self.get_logger().info(f"skeleton ({p['estimator']}) over {self.names}, lockstep={self.lockstep}")
+
+    def on_cameras(self, cameras) -> None:
+        self.stage = SkeletonStage(self.body, cameras, self.config)
+        self.get_logger().info("camera rig complete")
+        self.flush()
+
+    def on_blobs(self, msg) -> None:
+        try:
+            stamp, cam, blobs = blobs_from_msg(msg)
+        except (ValueError, AttributeError) as exc:
+            self.get_logger().error(f"dropped bad Blob2DArray: {exc}")
+            return
+        if cam not in self.names:
+            self.get_logger().error(f"dropped blobs of unknown camera '{cam}' (field camera_name)")
+            return
+        if stamp <= self.last_done:
+            self.get_logger().warning(f"dropped late blobs of {cam} for frame {stamp}")
+            return
+        self.pending.setdefault(stamp, {})[cam] = blobs
+        self.first_seen.setdefault(stamp, time.monotonic())
+        self.flush()
+
+    def flush(self) -> None:
+        if self.stage is None:
+            return
+        now = time.monotonic()
+        for stamp in sorted(self.pending):
+            got = self.pending[stamp]
+            complete = len(got) == len(self.names)
+            newer_complete = any(len(v) == len(self.names) for s, v in self.pending.items() if s > stamp)
+            timed_out = now - self.first_seen[stamp] > float(self.p["sync_timeout_s"])
+            if not complete and (self.lockstep or not (timed_out or newer_complete)):
+                return
+            del self.pending[stamp]
+            del self.first_seen[stamp]
+            self.process(stamp, got)
+
+    def process(self, stamp: int, blobs_by_camera: dict) -> None:
+        self.last_done = stamp
+        try:
+            estimate, prediction = self.stage.step(stamp, blobs_by_camera)
+        except ArtrackError as exc:
+            self.get_logger().error(f"frame {stamp}: {exc}")
+            return
+        f = msgs()
+        frame, body_id = self.p["world_frame"], int(self.p["body_id"])
+        # Prediction first: the priors for t+1 should be on their way before the player hears "t is done".
+        self.pred_pub.publish(body_msg(f, prediction, frame, body_id))
+        self.body_pub.publish(body_msg(f, estimate, frame, body_id))
+
+
+def main(args=None) -> None:
+    sys.exit(run_node(SkeletonNode, __doc__, PARAMS, args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,49 @@
+"""Shared fixtures. Process-level tests need the colcon workspace (make setup)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+INSTALL = REPO / "ros2_ws" / "install"
+NODE_BIN = INSTALL / "artrack_nodes" / "lib" / "artrack_nodes"
+
+
+def ros_env(domain_id: int | None = None) -> dict[str, str]:
+    """The environment of scripts/env.sh, with a private DDS domain for this test run."""
+    out = subprocess.run(["bash", "-c", f". {REPO}/scripts/env.sh && env -0"], capture_output=True, check=True)
+    env = dict(item.split("=", 1) for item in out.stdout.decode().split("\0") if "=" in item)
+    env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
+    env["ROS_DOMAIN_ID"] = str(domain_id if domain_id is not None else 100 + os.getpid() % 100)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    return env
+
+
+@pytest.fixture(scope="session")
+def env() -> dict[str, str]:
+    if not (NODE_BIN / "skeleton").is_file():
+        pytest.fail("workspace not built: run `make setup` (ros2_ws/install is missing)")
+    return ros_env()
+
+
+def run_artrack(env: dict[str, str], *args: str, timeout: float = 600, check: bool = True):
+    """Run the installed `artrack` command; returns the CompletedProcess."""
+    exe = NODE_BIN / "artrack"
+    proc = subprocess.run([str(exe), *args], env=env, capture_output=True, text=True, timeout=timeout, cwd=REPO)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"artrack {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+@pytest.fixture(scope="session")
+def small_scene(tmp_path_factory, env) -> Path:
+    """A 1.5 s, 4-camera, 320x240 synthetic scene shared by the process-level tests."""
+    out = tmp_path_factory.mktemp("scene") / "small.mcap"
+    run_artrack(env, "synth", "--seed", "3", "--out", str(out), "--duration", "1.5", "--width", "320",
+                "--height", "240", "--quiet")
+    return out
+
