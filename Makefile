@@ -22,7 +22,7 @@ test: setup
 # write the overlay montage to out/demo/.
 demo: setup
 	@mkdir -p $(DEMO_OUT) bags
-	@$(ENV) [ -e $(DEMO_BAG) ] || artrack synth --seed 0 --out $(DEMO_BAG)
+	@$(ENV) [ -e $(DEMO_BAG) ] || artrack synth --seed 0 --image-format jpeg --out $(DEMO_BAG)
 	@rm -rf $(DEMO_OUT)/graph
 	@$(ENV) artrack launch config/graph.yaml --set bag=$(DEMO_BAG) --set out=$(DEMO_OUT)/graph --log-dir $(DEMO_OUT)/logs
 	@$(ENV) artrack eval --truth $(DEMO_BAG) --pred $(DEMO_OUT)/graph --plot $(DEMO_OUT)/error_over_time.png

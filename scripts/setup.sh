@@ -18,6 +18,12 @@ pick_python() {
   return 1
 }
 
+# System tools the interface package build needs (Debian: build-essential cmake python3-venv).
+for tool in cmake cc c++ make; do
+  command -v "$tool" >/dev/null 2>&1 || {
+    echo "setup: '$tool' not found; on Debian: sudo apt-get install build-essential cmake python3-venv" >&2; exit 1; }
+done
+
 if [ ! -x "$VENV/bin/python" ]; then
   PY=$(pick_python)
   echo "setup: creating .venv with $PY"

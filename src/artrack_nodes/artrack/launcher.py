@@ -55,6 +55,9 @@ class NodeSpec:
 def expand_graph(graph: dict[str, Any], where: str, overrides: dict[str, Any] | None = None) -> list[NodeSpec]:
     """Node specs from a graph mapping; ``${name}`` strings are replaced from ``variables``/overrides."""
     variables = dict(graph.get("variables", {}) or {})
+    unknown = sorted(set(overrides or {}) - set(variables))
+    if unknown:
+        raise InputError(f"{where}: no graph variable '{unknown[0]}' (variables: {', '.join(variables)})")
     variables.update(overrides or {})
     cameras = list(variables.get("cameras", []))
 
