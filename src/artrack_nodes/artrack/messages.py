@@ -131,8 +131,16 @@ def blob_array_msg(
     )
 
 
+def _check_finite(items: list, fields: tuple[str, ...], what: str) -> None:
+    """ValueError naming the first message field that holds NaN or infinity."""
+    for i, item in enumerate(items):
+        for name in fields:
+            if not np.all(np.isfinite(getattr(item, name))):
+                raise ValueError(f"{what}[{i}].{name} is not finite")
+
+
 def blobs_from_msg(msg: Any) -> tuple[int, str, list[Blob2D]]:
-    """(stamp_ns, camera_name, blobs) from an artrack_msgs/Blob2DArray."""
+    """(stamp_ns, camera_name, blobs) from an artrack_msgs/Blob2DArray; ValueError names a bad field."""
     blobs = [
         Blob2D(
             label=b.label,
@@ -144,6 +152,7 @@ def blobs_from_msg(msg: Any) -> tuple[int, str, list[Blob2D]]:
         )
         for b in msg.blobs
     ]
+    _check_finite(blobs, ("mean", "cov", "color_mean", "color_cov"), "blobs")
     return ns_from_time(msg.header.stamp), msg.camera_name, blobs
 
 
@@ -169,7 +178,7 @@ def prior_array_msg(f: MsgFactory, stamp_ns: int, camera: str, frame_id: str, pr
 
 
 def priors_from_msg(msg: Any) -> tuple[int, str, list[Prior2D]]:
-    """(predicted stamp_ns, camera_name, priors) from a BlobPrior2DArray."""
+    """(predicted stamp_ns, camera_name, priors) from a BlobPrior2DArray; ValueError names a bad field."""
     stamp = ns_from_time(msg.header.stamp)
     priors = [
         Prior2D(
@@ -182,6 +191,7 @@ def priors_from_msg(msg: Any) -> tuple[int, str, list[Prior2D]]:
         )
         for p in msg.priors
     ]
+    _check_finite(priors, ("mean", "cov", "confidence"), "priors")
     return stamp, msg.camera_name, priors
 
 

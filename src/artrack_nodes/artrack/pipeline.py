@@ -27,6 +27,7 @@ import numpy as np
 from .blobs import BlobTracker2D, BlobTrackerConfig
 from .body_model import BodyModel
 from .cameras import Camera
+from .errors import InputError
 from .messages import (
     blob_array_msg,
     blobs_from_msg,
@@ -84,8 +85,18 @@ class BlobStage:
         self.camera_name = camera_name
         self.feedback = config.feedback
         self.tracker = BlobTracker2D(camera_name, list(body.blob_labels), blob_colour_classes(body), config.blob)
+        self.shape: tuple[int, ...] | None = None
 
     def step(self, image_bgr: np.ndarray, priors: list[Prior2D] | None) -> list[Blob2D]:
+        """Blobs of one image; InputError (the frame is skipped) if it is not the camera's BGR size."""
+        shape = getattr(image_bgr, "shape", ())
+        if len(shape) != 3 or shape[2] != 3 or image_bgr.dtype != np.uint8:
+            raise InputError(f"camera '{self.camera_name}': image is not (H, W, 3) uint8 BGR (shape {shape})")
+        if self.shape is None:
+            self.shape = shape
+        elif shape != self.shape:
+            raise InputError(f"camera '{self.camera_name}': image is {shape[1]}x{shape[0]}, "
+                             f"earlier frames were {self.shape[1]}x{self.shape[0]}")
         return self.tracker.step(image_bgr, priors if self.feedback else None)
 
 

@@ -159,6 +159,7 @@ class CameraRigListener:
 
     def __init__(self, node: Node, camera_names: list[str], on_complete: Callable[[list], None] | None = None):
         f = msgs()
+        self.node = node
         self.names = list(camera_names)
         self.info: dict[str, Any] = {}
         self.extr: dict[str, Any] = {}
@@ -173,9 +174,16 @@ class CameraRigListener:
     def _got(self, store: dict, name: str, msg: Any) -> None:
         store[name] = msg
         if not self.done and all(n in self.info and n in self.extr for n in self.names):
+            try:
+                cameras = self.cameras()
+            except (ArtrackError, ValueError, AttributeError) as exc:
+                # a bad camera_info/extrinsics is dropped; the next good one completes the rig
+                self.node.get_logger().error(f"dropped bad calibration of camera '{name}': {exc}")
+                store.pop(name, None)
+                return
             self.done = True
             if self.on_complete is not None:
-                self.on_complete(self.cameras())
+                self.on_complete(cameras)
 
     def cameras(self) -> list:
         from artrack.messages import camera_from_msgs

@@ -1,0 +1,94 @@
+"""A node that gets a bad message logs it and keeps running (real processes over real DDS).
+
+The test process is itself an rclpy participant on the private domain of the
+test run: it publishes malformed messages to a running node executable, then a
+good one, and checks that the node logged the bad ones and answered the good one.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from conftest import NODE_BIN
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
+from artrack.messages import image_msg, rclpy_factory
+
+pytestmark = pytest.mark.graph
+
+
+@pytest.fixture
+def probe(env):
+    context = Context()
+    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]))
+    node = Node("fault_probe", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    yield node, executor
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown(context=context)
+
+
+def _spin_until(executor, predicate, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+        if predicate():
+            return True
+    return False
+
+
+def test_blob_features_survives_bad_images_and_priors(env, probe, tmp_path):
+    node, executor = probe
+    f = rclpy_factory()
+    from artrack_nodes.common import IMAGE_QOS_RELIABLE, RESULT_QOS
+
+    log = tmp_path / "blob.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen([str(NODE_BIN / "blob_features"), "--ros-args", "-p", "camera_name:=camx",
+                                 "-p", "lockstep:=false"], env=env, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        got = []
+        node.create_subscription(f.cls("artrack_msgs/msg/Blob2DArray"), "/cameras/camx/blobs", got.append,
+                                 RESULT_QOS)
+        img_pub = node.create_publisher(f.cls("sensor_msgs/msg/Image"), "/cameras/camx/image_raw",
+                                        IMAGE_QOS_RELIABLE)
+        prior_pub = node.create_publisher(f.cls("artrack_msgs/msg/BlobPrior2DArray"), "/cameras/camx/blob_priors",
+                                          RESULT_QOS)
+        assert _spin_until(executor, lambda: img_pub.get_subscription_count() > 0, 30), "node never subscribed"
+
+        good = np.full((60, 80, 3), 90, np.uint8)
+        bad_encoding = image_msg(f, good, 1, "camx_optical_frame")
+        bad_encoding.encoding = "yuv422_weird"
+        short_data = image_msg(f, good, 2, "camx_optical_frame")
+        short_data.height = 120  # data holds only 60 rows
+        bad_prior = f("artrack_msgs/msg/BlobPrior2DArray", camera_name="camx", priors=[
+            f("artrack_msgs/msg/BlobPrior2D", label="head", mean=[float("nan"), 1.0], covariance=[1.0, 0, 0, 1.0],
+              confidence=1.0, visibility=0)])
+        for msg in (bad_encoding, short_data):
+            img_pub.publish(msg)
+        prior_pub.publish(bad_prior)
+        img_pub.publish(image_msg(f, good, 3, "camx_optical_frame"))
+        img_pub.publish(image_msg(f, np.full((30, 40, 3), 90, np.uint8), 4, "camx_optical_frame"))  # size changed
+        img_pub.publish(image_msg(f, good, 5, "camx_optical_frame"))
+
+        assert _spin_until(executor, lambda: len(got) >= 2, 30), f"no blobs for the good images:\n{log.read_text()}"
+        time.sleep(0.5)
+        assert proc.poll() is None, f"node died:\n{log.read_text()}"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+    text = log.read_text()
+    assert [m.header.stamp.nanosec for m in got] == [3, 5]
+    assert "unsupported encoding 'yuv422_weird' (field 'encoding')" in text
+    assert "fields 'height'/'step'" in text
+    assert "priors[0].mean is not finite" in text
+    assert "image is 40x30, earlier frames were 80x60" in text
+    assert "Traceback" not in text
