@@ -92,6 +92,24 @@ def test_behind_camera_and_off_image():
     assert ps[0].visibility == OFF_IMAGE
 
 
+def test_priors_behind_the_camera_cross_the_wire():
+    """The NaN mean of a BEHIND_CAMERA prior is by design: the message conversion the nodes
+    use keeps it, and still refuses NaN on a prior that claims to be visible."""
+    from artrack.messages import prior_array_msg, priors_from_msg, rosbags_factory
+
+    cam = ring_cameras()[0]
+    behind = _blob("behind", cam.center + 1.0 * (cam.center - np.array([0, 0, 1.0])) / 4)
+    front = _blob("front", np.array([0.0, 0.0, 1.0]))
+    (ps,) = project_priors([behind, front], [cam], 5).values()
+    f = rosbags_factory()
+    _, _, back = priors_from_msg(prior_array_msg(f, 5, cam.name, cam.frame_id, ps))
+    assert back[0].visibility == BEHIND_CAMERA and np.all(np.isnan(back[0].mean))
+    np.testing.assert_array_equal(back[1].mean, ps[1].mean)
+    ps[0].visibility = VISIBLE
+    with pytest.raises(ValueError, match=r"priors\[0\] \('behind'\) has a non-finite mean"):
+        priors_from_msg(prior_array_msg(f, 5, cam.name, cam.frame_id, ps))
+
+
 def test_off_image_when_distortion_would_fold_the_point_back_in():
     """A strong barrel polynomial maps far off-axis points back inside the image; they must
     still be OFF_IMAGE."""

@@ -22,7 +22,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .cameras import Camera
-from .types import Blob2D, Blob3D, BodyEstimate, LinkEstimate, Prior2D
+from .errors import CalibrationError
+from .types import BEHIND_CAMERA, Blob2D, Blob3D, BodyEstimate, LinkEstimate, Prior2D
 
 WORLD_FRAME = "world"
 
@@ -191,7 +192,12 @@ def priors_from_msg(msg: Any) -> tuple[int, str, list[Prior2D]]:
         )
         for p in msg.priors
     ]
-    _check_finite(priors, ("mean", "cov", "confidence"), "priors")
+    _check_finite(priors, ("confidence",), "priors")
+    # a prior behind the camera carries NaN mean and covariance by design (projection.py)
+    for i, p in enumerate(priors):
+        if p.visibility != BEHIND_CAMERA and not (np.all(np.isfinite(p.mean)) and np.all(np.isfinite(p.cov))):
+            raise ValueError(f"priors[{i}] ({p.label!r}) has a non-finite mean or covariance "
+                             "but is not behind the camera")
     return stamp, msg.camera_name, priors
 
 
@@ -307,11 +313,16 @@ def extrinsics_msg(f: MsgFactory, camera: Camera, stamp_ns: int, world_frame: st
 
 def camera_from_msgs(name: str, info: Any, extrinsics: Any | None) -> Camera:
     """Camera from a CameraInfo (ROS 2 ``k``/``d`` or ROS 1 ``K``/``D``) and, optionally,
-    its world->optical TransformStamped. Raises CalibrationError on malformed fields."""
+    its world->optical TransformStamped. Raises CalibrationError on malformed fields or a
+    distortion model other than plumb_bob / rational_polynomial (the OpenCV model)."""
     k = getattr(info, "k", None)
     k = info.K if k is None else k
     d = getattr(info, "d", None)
     d = info.D if d is None else d
+    model = str(getattr(info, "distortion_model", "plumb_bob") or "plumb_bob")
+    if model not in ("plumb_bob", "rational_polynomial") and len(d):
+        raise CalibrationError(f"camera '{name}' field 'distortion_model' is '{model}', "
+                               "only plumb_bob / rational_polynomial are supported")
     R, t = None, None
     if extrinsics is not None:
         tr = extrinsics.transform
