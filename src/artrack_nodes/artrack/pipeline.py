@@ -86,6 +86,7 @@ class BlobStage:
         self.feedback = config.feedback
         self.tracker = BlobTracker2D(camera_name, list(body.blob_labels), blob_colour_classes(body), config.blob)
         self.shape: tuple[int, ...] | None = None
+        self.used_priors = False  # whether the last step's priors were used (feedback / start-up)
 
     def step(self, image_bgr: np.ndarray, priors: list[Prior2D] | None) -> list[Blob2D]:
         """Blobs of one image; InputError (the frame is skipped) if it is not the camera's BGR size."""
@@ -97,7 +98,11 @@ class BlobStage:
         elif shape != self.shape:
             raise InputError(f"camera '{self.camera_name}': image is {shape[1]}x{shape[0]}, "
                              f"earlier frames were {self.shape[1]}x{self.shape[0]}")
-        return self.tracker.step(image_bgr, priors if self.feedback else None)
+        # Feedback off (the comparison of ALGORITHMS.md §1): the priors only hand the labels
+        # over at start-up (and after every label was lost); tracking then runs on 2-D
+        # temporal smoothness alone.
+        self.used_priors = bool(priors) and (self.feedback or not self.tracker.tracks)
+        return self.tracker.step(image_bgr, priors if self.used_priors else None)
 
 
 class SkeletonStage:
@@ -178,8 +183,8 @@ class ClosedLoopPipeline:
             if stage is None:
                 raise KeyError(f"unknown camera '{name}' (not in the calibration)")
             priors = self.priors.get(name) if self.frames > 0 else None
-            used[name] = priors
             blobs[name] = self.wire.blobs(stamp_ns, name, stage.step(images[name], priors))
+            used[name] = priors if stage.used_priors else None
         t1 = time.perf_counter()
         estimate, prediction = self.skeleton.step(stamp_ns, blobs)
         t2 = time.perf_counter()

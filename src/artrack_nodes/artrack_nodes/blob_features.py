@@ -32,7 +32,8 @@ from .common import (
 PARAMS = [
     ("camera_name", "cam01", "camera this node serves (topic /cameras/<camera_name>/...)"),
     ("lockstep", False, "wait for the prior predicting each frame (reproducible replay); reliable image QoS"),
-    ("feedback", True, "use the projected 3-D priors; false = 2-D temporal smoothness only"),
+    ("feedback", True, "use the projected 3-D priors; false = 2-D temporal smoothness once tracking "
+                 "(priors only label the start-up blobs)"),
     ("fps", 30.0, "nominal frame rate, Hz (prior-to-frame matching tolerance is half a frame)"),
     ("prior_timeout_s", 10.0, "lockstep: give up waiting for a prior after this long, s"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
@@ -115,7 +116,7 @@ class BlobFeaturesNode(Node):
                 self.get_logger().error(f"frame {stamp}: {exc}")
                 continue
             self.frames += 1
-            used = prior_stamp if (priors is not None and self.stage.feedback) else None
+            used = prior_stamp if (priors is not None and self.stage.used_priors) else None
             self.pub.publish(blob_array_msg(msgs(), stamp, self.camera, f"{self.camera}_optical_frame", blobs, used))
 
 
