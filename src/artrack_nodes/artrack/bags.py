@@ -71,7 +71,7 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from rosbags.typesys.store import Typestore
 
 from .cameras import Camera
-from .errors import BagError, CalibrationError, InputError
+from .errors import BagError, CalibrationError, InputError, check_output_path
 
 __all__ = [
     "GROUND_TRUTH_TOPIC",
@@ -181,7 +181,7 @@ QOS_PROFILES: dict[str, list[Qos]] = {
 
 
 # =========================================================================== writing
-def _looks_like_bag_dir(d: Path) -> bool:
+def looks_like_bag_dir(d: Path) -> bool:
     """A rosbag2 directory (has metadata.yaml), or one holding only storage files (or nothing)."""
     if (d / "metadata.yaml").is_file():
         return True
@@ -248,8 +248,9 @@ class BagWriter:
                 raise BagError(f"{p}: exists already (overwrite=False)")
             if self.single_file and p.is_dir():
                 raise BagError(f"{p}: is a directory, cannot write a {p.suffix} file there")
-            if not self.single_file and (not p.is_dir() or not _looks_like_bag_dir(p)):
+            if not self.single_file and (not p.is_dir() or not looks_like_bag_dir(p)):
                 raise BagError(f"{p}: exists and is not a rosbag2 directory; not overwriting")
+        check_output_path(p)
         try:
             p.parent.mkdir(parents=True, exist_ok=True)
             self._tmp = Path(tempfile.mkdtemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent))
@@ -588,6 +589,8 @@ class BagReader:
             raise BagError(f"{p}: no such bag (file or rosbag2 directory)")
         if p.is_file() and p.suffix.lower() not in (".mcap", ".db3", ".bag"):
             raise BagError(f"{p}: unknown bag format (expected .mcap, .db3, .bag or a rosbag2 directory)")
+        if p.is_dir() and (p / "metadata.yaml").exists():
+            _check_metadata(p / "metadata.yaml")
         mcaps = self._mcap_files()
         sources = [p]
         if p.is_dir() and not (p / "metadata.yaml").exists():
@@ -654,7 +657,13 @@ class BagReader:
             raise BagError(f"{self.path}: cannot read bag ({reason})")
         self.problem = "; ".join(problems)
         if not allow_truncated or fatal:
-            hint = "" if fatal else f"; the {total} messages before it are readable (allow_truncated)"
+            if fatal:
+                hint = ""
+            elif total == 0:
+                hint = "; no message is readable"
+            else:
+                hint = (f"; the {total} messages before it can be read with allow_truncated "
+                        "(artrack track --allow-truncated)")
             raise BagError(f"{self.path}: {self.problem}{hint}")
         self.truncated = True
         self._files = files
@@ -753,6 +762,46 @@ class BagReader:
             yield topic, _header_stamp(msg), image_from_msg(msg, f"{self.path}: topic '{topic}'")
 
 
+#: Keys of ``rosbag2_bagfile_information`` that rosbags needs to open a rosbag2 directory.
+_METADATA_KEYS = ("version", "storage_identifier", "relative_file_paths", "topics_with_message_count",
+                  "duration", "starting_time", "message_count")
+
+
+def _check_metadata(meta: Path) -> None:
+    """BagError naming ``meta`` (a rosbag2 metadata.yaml) and the field, if it cannot describe a bag."""
+    try:
+        data = yaml.safe_load(meta.read_text())
+    except OSError as exc:
+        raise BagError(f"{meta}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise BagError(f"{meta}: not a text file") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise BagError(f"{meta}: not valid YAML ({getattr(exc, 'problem', None) or 'syntax error'}{where})") from None
+    top = "rosbag2_bagfile_information"
+    info = data.get(top) if isinstance(data, dict) else None
+    if not isinstance(info, dict):
+        raise BagError(f"{meta}: no field '{top}' (not rosbag2 metadata)")
+    for key in _METADATA_KEYS:
+        if info.get(key) is None:
+            raise BagError(f"{meta}: no field '{top}.{key}'")
+    files = info["relative_file_paths"]
+    if not isinstance(files, list) or not files:
+        raise BagError(f"{meta}: field '{top}.relative_file_paths' must be a non-empty list")
+    for name in files:
+        if not (meta.parent / Path(str(name)).name).is_file():
+            raise BagError(f"{meta}: field '{top}.relative_file_paths' names '{name}', which is missing")
+    topics = info["topics_with_message_count"]
+    if not isinstance(topics, list):
+        raise BagError(f"{meta}: field '{top}.topics_with_message_count' must be a list")
+    for i, entry in enumerate(topics):
+        tm = entry.get("topic_metadata") if isinstance(entry, dict) else None
+        for key in ("name", "type", "serialization_format"):
+            if not isinstance(tm, dict) or tm.get(key) is None:
+                raise BagError(f"{meta}: no field '{top}.topics_with_message_count[{i}].topic_metadata.{key}'")
+
+
 def _short(exc: BaseException) -> str:
     text = " ".join(str(exc).split()) or type(exc).__name__
     return text if len(text) < 300 else text[:297] + "..."
@@ -801,26 +850,11 @@ _MAX_PENDING = 16
 
 
 def _camera_from_ros(name: str, info: Any, extr: Any, where: str) -> Camera:
-    """Camera from CameraInfo (ROS 2 lower-case or ROS 1 upper-case fields) and a TransformStamped."""
-    from scipy.spatial.transform import Rotation
+    """Camera from CameraInfo and a TransformStamped (messages.camera_from_msgs), errors naming the bag."""
+    from .messages import camera_from_msgs
 
-    k = getattr(info, "k", None)
-    k = info.K if k is None else k
-    d = getattr(info, "d", None)
-    d = info.D if d is None else d
-    tr = extr.transform
-    q = tr.rotation
-    world_from_cam = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    R = world_from_cam.T
-    t = -R @ np.array([tr.translation.x, tr.translation.y, tr.translation.z])
-    d = np.asarray(d, dtype=float)
-    model = str(getattr(info, "distortion_model", "plumb_bob") or "plumb_bob")
-    if model not in ("plumb_bob", "rational_polynomial") and d.size:
-        raise BagError(
-            f"{where}: camera '{name}' field 'distortion_model' is '{model}', only plumb_bob is supported"
-        )
     try:
-        return Camera.from_camera_info(name, int(info.width), int(info.height), k, d, R, t)
+        return camera_from_msgs(name, info, extr)
     except CalibrationError as exc:
         raise BagError(f"{where}: {exc}") from None
 
@@ -830,7 +864,8 @@ class Scene:
 
     cameras: list[Camera] in the bag's topic order (from camera_info + extrinsics, or as given);
     image_topics: camera name -> image topic; n_frames: image messages of the busiest camera;
-    truth: :class:`JointTrack` of ``/artrack/ground_truth`` (None if absent; read on first use).
+    truth: :class:`JointTrack` of ``/artrack/ground_truth`` (None if absent; read on first use);
+    truncated / problem: opened with ``allow_truncated`` and damaged (what is wrong).
     """
 
     def __init__(
@@ -841,6 +876,7 @@ class Scene:
         n_frames: int,
         has_truth: bool,
         truncated: bool,
+        problem: str | None = None,
     ):
         self.path = path
         self.cameras = cameras
@@ -848,6 +884,7 @@ class Scene:
         self.n_frames = n_frames
         self.has_truth = has_truth
         self.truncated = truncated
+        self.problem = problem  # what is wrong with a truncated bag (None when complete)
 
     @property
     def camera_names(self) -> list[str]:
@@ -939,7 +976,8 @@ def read_scene(
                 raise BagError(f"{p}: no camera image topics (/cameras/<name>/image_raw[/compressed])")
             cams = _read_cameras(bag, p, list(image_topics), topics)
         n_frames = max((counts.get(image_topics[c.name], 0) for c in cams), default=0)
-        return Scene(p, cams, image_topics, n_frames, GROUND_TRUTH_TOPIC in topics, bag.truncated)
+        return Scene(p, cams, image_topics, n_frames, GROUND_TRUTH_TOPIC in topics, bag.truncated,
+                     bag.problem)
 
 
 def _read_cameras(bag: BagReader, p: Path, names: list[str], topics: dict[str, str]) -> list[Camera]:

@@ -1,7 +1,7 @@
 """The `artrack` command: synth, track, eval, overlay, launch.
 
     artrack synth --seed N --out scene.mcap [options]
-    artrack track INPUT --out DIR            (INPUT a bag)
+    artrack track INPUT --out DIR [--allow-truncated]     (INPUT a bag)
     artrack track --videos V1 V2 ... --calib FILE --out DIR
     artrack eval --truth BAG_OR_CSV --pred DIR_OR_BAG      (prints "MPJPE <x> mm")
     artrack overlay INPUT --pred DIR_OR_BAG --out montage.png|video.mp4
@@ -14,13 +14,17 @@ and no half-written output.
 from __future__ import annotations
 
 import argparse
+import math
+import os
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .errors import ArtrackError
+from .errors import ArtrackError, InputError, check_output_path
 from .progress import Progress
 
 TRACK_BAG = "track"  # rosbag2 folder written by `artrack track` inside --out
@@ -30,11 +34,28 @@ JOINTS_CSV = "joints.csv"
 # ------------------------------------------------------------------ synth
 
 
+def _check_synth_args(args: argparse.Namespace) -> None:
+    if args.cameras < 1:
+        raise InputError(f"--cameras {args.cameras}: need at least one camera")
+    for opt in ("width", "height"):
+        if getattr(args, opt) < 1:
+            raise InputError(f"--{opt} {getattr(args, opt)}: must be a positive number of pixels")
+    for opt in ("fps", "duration"):
+        v = getattr(args, opt)
+        if not (math.isfinite(v) and v > 0):
+            raise InputError(f"--{opt} {v:g}: must be positive")
+    if round(args.duration * args.fps) < 1:
+        raise InputError(f"--duration {args.duration:g}: shorter than one frame at --fps {args.fps:g}")
+    if not (math.isfinite(args.noise) and args.noise >= 0):
+        raise InputError(f"--noise {args.noise:g}: must be >= 0")
+
+
 def cmd_synth(args: argparse.Namespace) -> int:
     from .bags import write_scene_bag
     from .body_model import load_body_model
     from .synth import SceneConfig, generate_scene, scene_cameras
 
+    _check_synth_args(args)
     config = SceneConfig(
         n_cameras=args.cameras, width=args.width, height=args.height, fps=args.fps, duration_s=args.duration,
         seed=args.seed, noise_sigma=args.noise, motion=args.motion, occlusion=args.occlusion,
@@ -44,7 +65,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     cameras = scene_cameras(config)
     n_frames = int(round(config.duration_s * config.fps))
     frames = Progress(generate_scene(config, body), total=n_frames, label="synth", quiet=args.quiet)
-    write_scene_bag(args.out, cameras, frames, joint_names=body.joint_names)
+    write_scene_bag(args.out, cameras, frames, joint_names=body.joint_names, image_format=args.image_format)
     print(f"wrote {args.out}: {n_frames} frames x {len(cameras)} cameras")
     return 0
 
@@ -54,8 +75,6 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 def _open_input(args: argparse.Namespace):
     """(cameras, frame iterator of (stamp_ns, {camera: image}), n_frames or None, fps or None)."""
-    from .bags import read_scene
-
     if args.videos:
         from .cameras import load_calibration
         from .video import open_videos
@@ -76,7 +95,12 @@ def _open_input(args: argparse.Namespace):
         return list(videos.cameras), frames, videos.n_frames or None, videos.fps
     if not args.input:
         raise ArtrackError("give a bag (INPUT) or --videos ... --calib FILE")
-    scene = read_scene(args.input)
+    from .bags import read_scene
+
+    scene = read_scene(args.input, allow_truncated=args.allow_truncated)
+    if scene.truncated:
+        print(f"artrack track: warning: {args.input}: {scene.problem}; tracking the readable part",
+              file=sys.stderr)
     cameras = scene.cameras
     if args.camera_names:
         missing = [n for n in args.camera_names if n not in {c.name for c in cameras}]
@@ -88,21 +112,92 @@ def _open_input(args: argparse.Namespace):
     return cameras, frames, scene.n_frames, None
 
 
+def _check_track_out(out: Path) -> None:
+    """Refuse an --out we could not (or must not) fill, before any work is done."""
+    from .bags import looks_like_bag_dir
+
+    if (out.exists() or out.is_symlink()) and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    if out.is_dir():
+        bag = out / TRACK_BAG
+        if (bag.exists() or bag.is_symlink()) and not (bag.is_dir() and looks_like_bag_dir(bag)):
+            raise InputError(f"{bag}: exists and is not a rosbag2 directory; not overwriting")
+        if (out / JOINTS_CSV).is_dir():
+            raise InputError(f"{out / JOINTS_CSV}: is a directory; not overwriting")
+    check_output_path(out)
+
+
+def _start_track_out(out: Path) -> tuple[Path, list[Path]]:
+    """A hidden temporary sibling of --out to write into, and the parent folders created for it."""
+    created = [a for a in reversed(out.parents) if not (a.exists() or a.is_symlink())]
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)  # the folder becomes --out: usual permissions, not mkdtemp's 0700
+    except OSError as exc:
+        _remove_empty_dirs(created)
+        raise InputError(f"{out}: cannot create output ({exc.strerror or exc})") from None
+    return tmp, created
+
+
+def _remove_empty_dirs(dirs: list[Path]) -> None:
+    for d in reversed(dirs):  # innermost first
+        try:
+            d.rmdir()
+        except OSError:
+            break
+
+
+def _finish_track_out(tmp: Path, out: Path) -> None:
+    """Move the finished output into place: the whole folder, or, into an existing --out folder,
+    its track/ bag (replacing an older one) and joints.csv; other files there are left alone."""
+    try:
+        if not (out.exists() or out.is_symlink()):
+            os.rename(tmp, out)
+            return
+        for name in (TRACK_BAG, JOINTS_CSV):
+            dst = out / name
+            if dst.is_dir() and not dst.is_symlink():
+                os.rename(dst, tmp / f".old.{name}")
+            os.replace(tmp / name, dst)
+    except OSError as exc:
+        raise InputError(f"{out}: cannot move the output into place ({exc.strerror or exc})") from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def cmd_track(args: argparse.Namespace) -> int:
-    from .bags import BagWriter
-    from .body_model import load_body_model
-    from .evaluation import write_joints_csv
-    from .messages import blob_array_msg, body_msg, prior_array_msg, rosbags_factory
+    out = Path(args.out)
+    _check_track_out(out)
+    cameras, frames, total, input_fps = _open_input(args)
+    from .body_model import load_body_model  # after the input checks: bad input fails fast
     from .pipeline import ClosedLoopPipeline, load_pipeline_config
 
-    cameras, frames, total, input_fps = _open_input(args)
     body = load_body_model(args.body_model)
     fps = args.fps or input_fps or 30.0
     config = load_pipeline_config(estimator=args.estimator, feedback=not args.no_feedback, fps=fps,
                                   blob_config=args.blob_config, skeleton_config=args.skeleton_config)
     pipe = ClosedLoopPipeline(body, cameras, config)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    tmp, created = _start_track_out(out)
+    try:
+        _track_into(tmp, args, pipe, body, config, frames, total)
+        _finish_track_out(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        _remove_empty_dirs(created)
+        raise
+    print(f"wrote {out / TRACK_BAG} and {out / JOINTS_CSV}")
+    return 0
+
+
+def _track_into(out: Path, args: argparse.Namespace, pipe, body, config, frames, total) -> None:
+    """Run the closed loop over ``frames``, writing ``out``/track (bag) and ``out``/joints.csv."""
+    from .bags import BagWriter
+    from .evaluation import write_joints_csv
+    from .messages import blob_array_msg, body_msg, prior_array_msg, rosbags_factory
+
     f = rosbags_factory()
     stamps, joints = [], []
     stage_ms: dict[str, list[float]] = {}
@@ -122,7 +217,7 @@ def cmd_track(args: argparse.Namespace) -> int:
             for cam in pipe.cameras:
                 if cam.name in res.blobs:
                     used = res.priors_used.get(cam.name)
-                    prior_stamp = used[0].stamp_ns if used and config.feedback else None
+                    prior_stamp = used[0].stamp_ns if used else None
                     bag.write(f"/cameras/{cam.name}/blobs", stamp,
                               blob_array_msg(f, stamp, cam.name, cam.frame_id, res.blobs[cam.name], prior_stamp))
                 bag.write(f"/cameras/{cam.name}/blob_priors", stamp,
@@ -138,8 +233,6 @@ def cmd_track(args: argparse.Namespace) -> int:
     write_joints_csv(out / JOINTS_CSV, stamps, body.joint_names, np.asarray(joints))
     print(f"tracked {len(stamps)} frames in {elapsed:.1f} s: {len(stamps) / elapsed:.1f} frames per second")
     print("per-stage ms/frame: " + ", ".join(f"{k} {np.mean(v):.2f}" for k, v in stage_ms.items()))
-    print(f"wrote {out / TRACK_BAG} and {out / JOINTS_CSV}")
-    return 0
 
 
 # ------------------------------------------------------------------- eval
@@ -156,6 +249,8 @@ def load_predictions(path: str):
         return read_joints_csv(p)
     if p.is_dir() and (p / TRACK_BAG).is_dir():
         p = p / TRACK_BAG
+    elif p.is_dir() and not (p / "metadata.yaml").exists() and not any(p.glob("*.mcap")):
+        raise InputError(f"{p}: no {JOINTS_CSV} and no {TRACK_BAG}/ bag (expected an `artrack track` --out folder)")
     return read_body_topic(p, "/artrack/body")
 
 
@@ -220,6 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--motion", default="default", help="scripted motion (default: walk, wave, reach)")
     s.add_argument("--occlusion", action="store_true", help="include a self-occlusion segment")
     s.add_argument("--distractor", action="store_true", help="a second person walks through")
+    s.add_argument("--image-format", default="raw", choices=["raw", "png", "jpeg"],
+                   help="raw sensor_msgs/Image, or CompressedImage (png lossless, jpeg small)")
     s.add_argument("--body-model", default=None)
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_synth)
@@ -232,13 +329,16 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--camera-names", nargs="+", help="cameras to use (default: all)")
     t.add_argument("--scale", type=float, default=1.0, help="downscale videos to a working resolution")
     t.add_argument("--estimator", default="kinematic", choices=["baseline", "kinematic", "dynamic"])
-    t.add_argument("--no-feedback", action="store_true", help="blob trackers ignore the 3-D priors")
+    t.add_argument("--no-feedback", action="store_true", help="blob trackers ignore the 3-D priors once they track "
+                   "(priors only label the start-up blobs)")
     t.add_argument("--fps", type=float, default=None,
                    help="nominal frame rate (first prediction step; videos: overrides the container's); default 30")
     t.add_argument("--blob-config", default=None)
     t.add_argument("--skeleton-config", default=None)
     t.add_argument("--body-model", default=None)
     t.add_argument("--max-frames", type=int, default=0)
+    t.add_argument("--allow-truncated", action="store_true",
+                   help="a truncated MCAP bag: track the messages before the damage (default: refuse)")
     t.add_argument("--quiet", action="store_true")
     t.set_defaults(func=cmd_track)
 
@@ -275,6 +375,12 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except ArtrackError as exc:
         print(f"artrack {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:  # a file we could not read or write (no file named: a genuine bug, re-raised)
+        if exc.filename is None:
+            raise
+        name = exc.filename if exc.filename2 is None else f"{exc.filename} -> {exc.filename2}"
+        print(f"artrack {args.command}: {name}: {exc.strerror or exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

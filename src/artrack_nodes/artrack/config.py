@@ -41,6 +41,10 @@ def read_yaml(path: str | os.PathLike) -> dict[str, Any]:
         data = yaml.safe_load(p.read_text())
     except FileNotFoundError:
         raise InputError(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise InputError(f"{p}: is a directory, not a YAML file") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{p}: not a text file (not UTF-8)") from None
     except yaml.YAMLError as exc:
         raise InputError(f"{p}: not valid YAML ({exc.__class__.__name__})") from None
     if data is None:

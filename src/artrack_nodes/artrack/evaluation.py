@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from .bags import GROUND_TRUTH_TOPIC, JointTrack, read_body_topic
-from .errors import InputError
+from .errors import InputError, check_output_path
 
 __all__ = [
     "EvalResult",
@@ -160,6 +160,7 @@ def format_report(result: EvalResult) -> str:
 # =========================================================================== files
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write to a hidden sibling, then rename (usual umask permissions)."""
+    check_output_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
     try:

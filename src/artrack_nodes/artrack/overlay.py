@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from .cameras import Camera
-from .errors import InputError
+from .errors import InputError, check_output_path
 from .types import VISIBLE, Blob2D, Prior2D
 
 __all__ = [
@@ -209,6 +209,7 @@ def montage(images: Sequence[np.ndarray], cols: int = 2) -> np.ndarray:
 
 def _temp_sibling(path: Path, suffix: str) -> Path:
     """An unused hidden name next to ``path`` (not created: files get the usual umask permissions)."""
+    check_output_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     while True:
         tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}{suffix}")

@@ -20,8 +20,12 @@ already scaled fails the size check, by design, rather than scaling twice).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import re
+import sys
+import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,11 +56,44 @@ class _Source:
     n_frames: int  # as the container reports it (may be approximate or 0)
 
 
+@contextlib.contextmanager
+def _captured_stderr() -> Iterator[list[str]]:
+    """Collect what C libraries (FFmpeg, OpenCV) print on file descriptor 2 meanwhile.
+
+    Yields a list that holds the non-empty lines once the block ends."""
+    lines: list[str] = []
+    try:
+        saved = os.dup(2)
+    except OSError:  # no usable stderr: nothing to capture
+        yield lines
+        return
+    with tempfile.TemporaryFile() as tmp:
+        sys.stderr.flush()
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            lines.extend(ln.strip() for ln in tmp.read().decode(errors="replace").splitlines() if ln.strip())
+
+
+#: FFmpeg's log prefix, e.g. "[mov,mp4,m4a,3gp,3g2,mj2 @ 0x5649be9b7780] ".
+_AV_PREFIX = re.compile(r"^\[[^\]]* @ 0x[0-9a-f]+\]\s*")
+
+
 def _open(path: Path) -> cv2.VideoCapture:
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
+    """Open a video; failure is one InputError line (FFmpeg's complaint in brackets, not on stderr)."""
+    with _captured_stderr() as noise:
+        cap = cv2.VideoCapture(str(path))
+        ok = cap.isOpened()
+    if not ok:
         cap.release()
-        raise InputError(f"{path}: cannot open video (unsupported format or codec)")
+        detail = f": {_AV_PREFIX.sub('', noise[-1])}" if noise else ""
+        raise InputError(f"{path}: cannot open video (unsupported format or codec{detail})")
+    if noise:  # opened after all: pass the library's messages on unchanged
+        print("\n".join(noise), file=sys.stderr)
     return cap
 
 
