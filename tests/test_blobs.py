@@ -85,6 +85,7 @@ def render(parts: dict[str, tuple], frame: int, noise: float = 2.0
 
 
 def make_tracker(**kw) -> BlobTracker2D:
+    kw.setdefault("startup_settle_frames", 0)  # short test sequences (the delay has its own test)
     cfg = BlobTrackerConfig(background_seed_frames=SEED, background_seed_stride=1, **kw)
     return BlobTracker2D("cam01", LABELS, CLASSES, cfg)
 
@@ -210,7 +211,7 @@ def test_startup_reports_foreground_and_three_skin_blobs():
 
 
 def test_startup_waits_for_a_few_seed_samples():
-    tracker = make_tracker()
+    tracker = make_tracker(startup_min_seed_samples=3)
     for t in range(tracker.config.startup_min_seed_samples - 1):
         img, _ = render(default_parts(cx=40.0 + 40.0 * t), t)
         assert tracker.step(img, None) == []
@@ -400,3 +401,18 @@ def test_config_file_mirrors_the_dataclass():
     text = path.read_text()
     for f in dataclasses.fields(BlobTrackerConfig):
         assert f"\n{f.name}:" in text, f.name
+
+
+def test_startup_waits_for_the_complete_seed_and_settling_by_default():
+    """With the defaults no start-up blobs come before the seed is complete and
+    ``startup_settle_frames`` more frames have passed: a running median of a few samples
+    absorbs a person who hardly moved, leaving only outlines (skin-like rims) as foreground."""
+    cfg = BlobTrackerConfig(background_seed_frames=SEED, background_seed_stride=1)
+    assert cfg.startup_min_seed_samples == 0 and cfg.startup_settle_frames > 0
+    tracker = BlobTracker2D("cam01", LABELS, CLASSES, cfg)
+    n = SEED + cfg.startup_settle_frames
+    for t in range(n):
+        img, _ = render(default_parts(cx=40.0 + 8.0 * t), t)
+        assert tracker.step(img, None) == [], t
+    img, _ = render(default_parts(cx=40.0 + 8.0 * n), n)
+    assert tracker.step(img, None)[0].label == FOREGROUND

@@ -68,7 +68,10 @@ Start-up (no priors and no blob tracked in 2-D): the tracker reports a
 ``foreground`` blob (Gaussian of all foreground pixels) and up to
 ``startup_max_skin_blobs`` ``skin`` blobs (connected components of skin-coloured
 foreground pixels, largest first) for the 3-D stage to triangulate, once the
-seed holds ``startup_min_seed_samples`` samples; labelled tracking starts with
+seed is complete and ``startup_settle_frames`` more frames have let the ghost healing
+run (or, if ``startup_min_seed_samples`` > 0, once the seed holds that many samples:
+a running median of a few samples absorbs a person who hardly moved, leaving only
+their outline as foreground); labelled tracking starts with
 the first priors and falls back to start-up when priors stop and every label has
 been unseen for more than ``temporal_max_missed`` frames.
 
@@ -207,9 +210,14 @@ class BlobTrackerConfig:
     startup_max_skin_blobs: int = 3
     #: at start-up, skip skin components larger than this fraction of the foreground (clothing)
     startup_skin_max_fraction: float = 0.35
-    #: report no start-up blobs before the background seed holds this many samples (the running
-    #: median of fewer samples cannot yet tell a person's old place from the new one)
-    startup_min_seed_samples: int = 3
+    #: report start-up blobs while the background is still seeding once the seed holds this many
+    #: samples (0 = never: wait for the complete seed). A running median of a few samples cannot
+    #: tell a person who hardly moved from the room: the foreground is then only the person's
+    #: outline, and skin-coloured rims of the clothing pass for hands (wrong start-up poses)
+    startup_min_seed_samples: int = 0
+    #: after the seed is complete, report no start-up blobs for this many frames, so that ghosts
+    #: (the person's place during the seed) are healed before the body is initialised from them
+    startup_settle_frames: int = 10
 
     # ---- speed
     #: working resolution as a fraction of the input (1 = full; 0.5 halves width and height)
@@ -248,7 +256,8 @@ class BlobTrackerConfig:
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise bad(name, "must be a positive integer")
         for name in ("min_blob_pixels", "startup_max_skin_blobs", "temporal_max_missed", "foreground_median",
-                     "background_static_frames", "background_ghost_frames", "startup_min_seed_samples"):
+                     "background_static_frames", "background_ghost_frames", "startup_min_seed_samples",
+                     "startup_settle_frames"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
                 raise bad(name, "must be a non-negative integer")
         if self.colour_features not in ("rgI", "rg"):
@@ -363,6 +372,7 @@ class BackgroundModel:
     def __init__(self, config: BlobTrackerConfig):
         self.config = config
         self.frames = 0
+        self.frames_ready = 0  # frames processed since the seed was complete
         self.seed: list[np.ndarray] = []
         self.mean: np.ndarray | None = None
         self.var: np.ndarray | None = None
@@ -396,6 +406,7 @@ class BackgroundModel:
                 self._finish_seed(median)
             return fg
         self.frames += 1
+        self.frames_ready += 1
         diff = cv2.subtract(image_f, self.mean)
         self._diff2 = cv2.multiply(diff, diff)
         d2 = cv2.transform(cv2.divide(self._diff2, self.var), _ONES13)
@@ -657,8 +668,7 @@ class BlobTracker2D:
         models = self._class_models(priors)
         if models is None:
             self.mode = "startup"
-            bg = self.background
-            if bg.ready or len(bg.seed) >= self.config.startup_min_seed_samples:
+            if self._startup_allowed():
                 blobs, explained = self._startup(img, fg)
             else:
                 blobs, explained = [], np.zeros_like(fg)
@@ -669,6 +679,14 @@ class BlobTracker2D:
             blobs, explained = self._track(img, fg, models)
         self.background.update(img, img_f, ~fg, fg & ~explained)
         return blobs
+
+    def _startup_allowed(self) -> bool:
+        """Whether the background is trustworthy enough for start-up blobs (see
+        ``startup_min_seed_samples`` and ``startup_settle_frames``)."""
+        bg, cfg = self.background, self.config
+        if not bg.ready:
+            return 0 < cfg.startup_min_seed_samples <= len(bg.seed)
+        return cfg.startup_min_seed_samples > 0 or bg.frames_ready > cfg.startup_settle_frames
 
     # ------------------------------------------------------------------ class priors
     def _class_models(self, priors: list[Prior2D] | None) -> list[_ClassModel] | None:
