@@ -300,3 +300,28 @@ def test_config_file_and_errors(body, cameras):
     est = make_estimator("baseline", body, cameras, None)
     with pytest.raises(InputError, match="unknown camera 'cam9'"):
         est.update(0, {"cam9": []})
+
+
+def test_baseline_fit_is_robust_to_one_mislabelled_blob(body, cameras):
+    """A blob labelled on the wrong part (here: the torso blob 0.35 m off, e.g. claimed by a
+    ghost) must not drag the whole body: the Cauchy loss of fit.robust_scale keeps the other
+    parts in place, plain least squares (robust_scale 0) does not."""
+    theta = _test_pose(body)
+    means, covs = body.blob_gaussians(theta)
+    wrong = means.copy()
+    k = body.blob_labels.index("torso")
+    wrong[k] += np.array([0.0, 0.35, 0.0])
+    blobs = {}
+    for cam in cameras:
+        uv, J = cam.project_jacobian(wrong)
+        blobs[cam.name] = [Blob2D(lab, uv[i], J[i] @ covs[i] @ J[i].T, pixel_count=200)
+                           for i, lab in enumerate(body.blob_labels)]
+    errs = {}
+    for scale in (0.0, 3.0):
+        est = make_estimator("baseline", body, cameras, {"fit": {"robust_scale": scale}})
+        est.update(stamp(0), blobs_2d(body, cameras, theta))  # initialised on the true blobs
+        e = est.update(stamp(1), blobs)
+        errs[scale] = float(np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean())
+    # (18 mm on the true blobs; the torso blob carries most of the torso's information)
+    assert errs[3.0] < 0.05, errs
+    assert errs[0.0] > 1.3 * errs[3.0], errs

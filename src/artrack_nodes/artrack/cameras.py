@@ -37,7 +37,6 @@ from typing import Any
 import cv2
 import numpy as np
 import yaml
-from scipy.spatial.transform import Rotation
 
 from .errors import CalibrationError
 
@@ -136,7 +135,8 @@ class Camera:
     @property
     def rvec(self) -> np.ndarray:
         """(3,) Rodrigues vector of R (cam_from_world), rad."""
-        return Rotation.from_matrix(self.R).as_rotvec()
+        # cv2.Rodrigues: ~50x cheaper than scipy's Rotation (this runs on every projection)
+        return cv2.Rodrigues(np.ascontiguousarray(self.R, dtype=float))[0].reshape(3)
 
     @property
     def cam_from_world(self) -> np.ndarray:
@@ -472,6 +472,8 @@ def _load_toml(p: Path, where: str) -> list[Camera]:
         data = tomllib.loads(p.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise CalibrationError(f"{where}: not valid TOML ({exc})") from None
+    from scipy.spatial.transform import Rotation  # lazy: scipy.spatial is slow to import
+
     cams = []
     for key, c in data.items():
         if key == "metadata" or not isinstance(c, dict):

@@ -171,6 +171,7 @@ class FitConfig:
     previous_sigma_rad: float = 2.0
     max_nfev: int = 40
     predict_velocity_sigma: float = 1.0
+    robust_scale: float = 3.0
 
 
 @dataclass
@@ -425,14 +426,17 @@ def fit_pose(
     previous: np.ndarray | None = None,
     previous_sigma: float = 1.0,
     max_nfev: int = 40,
+    robust_scale: float = 0.0,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Bounded least-squares fit of theta to 3-D point targets.
 
     Minimises ``½ Σ ‖U_k (x_k(θ) − y_k)‖² + ½ Σ_j ((θ_j − rest_j)/σ_r)² + ½ Σ_j ((θ_j −
     prev_j)/σ_p)²`` (regularisers on the non-root dofs j) subject to the joint limits
     (``scipy.optimize.least_squares``, 'trf'), with a batched finite-difference Jacobian
-    (one FK call). rest_sigma: scalar or per-dof (n_dof,) rad. Returns (theta (n_dof,),
-    cost, cov_theta (n_dof, n_dof) = (JᵀJ)⁺).
+    (one FK call). rest_sigma: scalar or per-dof (n_dof,) rad. robust_scale > 0: Cauchy loss
+    on the whitened residuals with this scale (sigmas), so that a grossly wrong target (a
+    mislabelled blob) pulls little; 0: plain least squares. Returns (theta (n_dof,), cost,
+    cov_theta (n_dof, n_dof) = (JᵀJ)⁺ at the solution, robust weights included).
     """
     lo, hi = body.lower, body.upper
     span = np.maximum(hi - lo, 1e-9)
@@ -474,7 +478,9 @@ def fit_pose(
 
     if len(targets) == 0 and not reg_w:
         return x0, 0.0, np.eye(body.n_dof)
-    res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", max_nfev=max_nfev, x_scale=1.0)
+    loss = ("cauchy", float(robust_scale)) if robust_scale > 0 else ("linear", 1.0)
+    res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", max_nfev=max_nfev, x_scale=1.0,
+                        loss=loss[0], f_scale=loss[1])
     J = res.jac
     cov = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True)
     return res.x, float(res.cost), cov
@@ -1020,6 +1026,7 @@ class BaselineEstimator(_Estimator):
             self.theta,
             f.previous_sigma_rad,
             f.max_nfev,
+            f.robust_scale,
         )
         self._set_pose(theta, cov, self.poses, dt)
 
