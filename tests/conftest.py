@@ -41,9 +41,10 @@ def run_artrack(env: dict[str, str], *args: str, timeout: float = 600, check: bo
 
 @pytest.fixture(scope="session")
 def small_scene(tmp_path_factory, env) -> Path:
-    """A 1.5 s, 4-camera, 320x240 synthetic scene shared by the process-level tests."""
+    """A 2.5 s, 4-camera, 320x240 synthetic scene shared by the process-level tests (75 frames;
+    the blob trackers start after the background seed, about 1.7 s)."""
     out = tmp_path_factory.mktemp("scene") / "small.mcap"
-    run_artrack(env, "synth", "--seed", "3", "--out", str(out), "--duration", "1.5", "--width", "320",
+    run_artrack(env, "synth", "--seed", "3", "--out", str(out), "--duration", "2.5", "--width", "320",
                 "--height", "240", "--quiet")
     return out
 

@@ -19,6 +19,7 @@ from artrack.bags import open_bag
 from artrack.messages import blobs_from_msg, body_from_msg
 
 pytestmark = pytest.mark.graph
+FRAMES = 75  # conftest.small_scene: 2.5 s at 30 fps
 
 
 @pytest.fixture(scope="module")
@@ -46,17 +47,20 @@ def test_graph_equals_offline_track(graph_run, small_scene, env, tmp_path):
     run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "offline"), "--quiet")
     live = _bodies(graph_run)
     offline = _bodies(tmp_path / "offline" / "track")
-    assert len(offline) == 45
+    assert len(offline) == FRAMES
     assert sorted(live) == sorted(offline), "the graph must estimate every frame of the bag exactly once"
     for s in offline:  # frames before start-up carry NaN joints, in both
         assert np.array_equal(np.isnan(live[s]), np.isnan(offline[s])), f"NaN joints differ at stamp {s}"
     tracked = [s for s in offline if not np.isnan(offline[s]).all()]
-    assert len(tracked) >= 30, "the tracker should be running for most of the scene"
+    assert len(tracked) >= 15, "the tracker should be running after the background seed"
     worst = max(float(np.nanmax(np.abs(live[s] - offline[s]))) for s in tracked)
     assert worst <= 1e-9, f"live graph and offline pipeline differ by {worst:.3g} m"
 
 
 def test_priors_flow_back_and_are_used(graph_run):
+    bodies = _bodies(graph_run)
+    first = min(s for s, j in bodies.items() if not np.isnan(j).all())  # first estimated frame
+    after = sum(s > first for s in bodies)
     used, total, cameras = 0, 0, set()
     with open_bag(graph_run) as reader:
         for topic, _, msg in reader.messages():
@@ -65,11 +69,12 @@ def test_priors_flow_back_and_are_used(graph_run):
                 cameras.add(cam)
                 total += 1
                 used += bool(msg.prior_used)
+                assert bool(msg.prior_used) == (stamp > first), "priors are used exactly once there are some"
                 if msg.prior_used:
                     assert abs(msg.prior_staleness) < 1.0 / 60, "lockstep priors predict the very frame"
     assert cameras == {"cam01", "cam02", "cam03", "cam04"}
-    assert total == 4 * 45
-    assert used == 4 * 44, "every frame after the first is classified with its projected prior"
+    assert total == 4 * FRAMES
+    assert after >= 15 and used == 4 * after, "every frame after the first estimate is classified with its prior"
 
 
 def test_recorded_bag_readable_by_mcap(graph_run):
@@ -87,4 +92,4 @@ def test_recorded_bag_readable_by_mcap(graph_run):
     assert "LinkState[] links" in schemas["artrack_msgs/msg/TrackedBody"]
     assert {"/artrack/body", "/artrack/prediction", "/cameras/cam01/blob_priors"} <= topics
     body_channel = next(cid for cid, c in summary.channels.items() if c.topic == "/artrack/body")
-    assert counts[body_channel] == 45
+    assert counts[body_channel] == FRAMES
