@@ -23,8 +23,9 @@ test: setup
 demo: setup
 	@mkdir -p $(DEMO_OUT) bags
 	@$(ENV) [ -e $(DEMO_BAG) ] || artrack synth --seed 0 --image-format jpeg --out $(DEMO_BAG)
-	@rm -rf $(DEMO_OUT)/graph
+	@rm -rf $(DEMO_OUT)/graph $(DEMO_OUT)/logs
 	@$(ENV) artrack launch config/graph.yaml --set bag=$(DEMO_BAG) --set out=$(DEMO_OUT)/graph --log-dir $(DEMO_OUT)/logs
+	@grep -ho "done: .*frames per second.*" $(DEMO_OUT)/logs/bag_player.log | sed 's/^done: /graph: /'
 	@$(ENV) artrack eval --truth $(DEMO_BAG) --pred $(DEMO_OUT)/graph --plot $(DEMO_OUT)/error_over_time.png
 	@$(ENV) artrack overlay $(DEMO_BAG) --pred $(DEMO_OUT)/graph --out $(DEMO_OUT)/overlay.png
 	@echo "demo outputs in $(DEMO_OUT)/"

@@ -49,7 +49,7 @@ from .types import Blob2D, BodyEstimate, Prior2D
 class PipelineConfig:
     """Options shared by the nodes and ``artrack track`` (see config/*.yaml)."""
 
-    estimator: str = "kinematic"
+    estimator: str = "baseline"
     feedback: bool = True
     fps: float = 30.0
     blob: BlobTrackerConfig = field(default_factory=BlobTrackerConfig)
@@ -197,7 +197,7 @@ class ClosedLoopPipeline:
 
 
 def load_pipeline_config(
-    estimator: str = "kinematic",
+    estimator: str = "baseline",
     feedback: bool = True,
     fps: float = 30.0,
     blob_config: str | None = None,

@@ -57,12 +57,15 @@ class BagPlayerNode(Node):
         self.waiting_for: int | None = None
         self.bodies_seen: set[int] = set()
         self.t0_wall = self.t0_stamp = None
+        self.t_first_sent: float | None = None  # wall clock of the first frame published
+        self.t_last_body: float | None = None  # wall clock of the newest body received
         self.next_frame = None
         self.timer = self.create_timer(0.002, self.tick)
         self.get_logger().info(f"playing {p['bag']} ({len(self.names)} cameras, lockstep={self.lockstep})")
 
     def on_body(self, msg) -> None:
         self.bodies_seen.add(ns_from_time(msg.header.stamp))
+        self.t_last_body = time.monotonic()
 
     def _graph_ready(self) -> bool:
         if self.pubs.subscriber_count() < 1:
@@ -104,14 +107,26 @@ class BagPlayerNode(Node):
                     return
             self.pubs.publish_images(stamp, {n: images[n] for n in self.names if n in images})
             self.sent += 1
+            if self.t_first_sent is None:
+                self.t_first_sent = now
             if self.lockstep:
                 self.waiting_for, self.state, self.t_state = stamp, "wait_body", now
             elif not self._advance():
                 self.state, self.t_state = "linger", now
             return
         if self.state == "linger" and now - self.t_state > float(self.p["linger_s"]):
-            self.get_logger().info(f"done: {self.sent} frames")
+            self.get_logger().info(f"done: {self.sent} frames; {self._throughput()}")
             raise SystemExit(0)
+
+
+    def _throughput(self) -> str:
+        """Closed-loop throughput: bodies received per second of wall clock, from the first
+        frame sent to the last body received (lockstep: one frame in flight at a time)."""
+        n = len(self.bodies_seen)
+        if self.t_first_sent is None or self.t_last_body is None or n == 0:
+            return "no body came back"
+        span = max(self.t_last_body - self.t_first_sent, 1e-9)
+        return f"{n} bodies in {span:.1f} s: {n / span:.2f} frames per second (closed loop)"
 
 
 def main(args=None) -> None:

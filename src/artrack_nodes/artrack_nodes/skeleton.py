@@ -33,7 +33,7 @@ from .common import (
 
 PARAMS = [
     ("camera_names", ["cam01", "cam02", "cam03", "cam04"], "cameras whose blobs are fused"),
-    ("estimator", "kinematic", "baseline (raw triangulate-and-fit) | kinematic | dynamic"),
+    ("estimator", "baseline", "baseline (raw triangulate-and-fit) | kinematic | dynamic"),
     ("fps", 30.0, "nominal frame rate, Hz (first prediction interval)"),
     ("lockstep", False, "wait for every camera's blobs of a frame (no timeout)"),
     ("sync_timeout_s", 0.1, "free-running: process a frame with the cameras that reported after this long, s"),
