@@ -5,15 +5,19 @@ ENV := . scripts/env.sh &&
 DEMO_BAG := bags/demo.mcap
 DEMO_OUT := out/demo
 
-.PHONY: setup test demo lint bench clean
+.PHONY: setup data test demo lint bench clean
 
 setup:
 	@bash scripts/setup.sh
 
+# Real 4-camera recordings with calibration (pose2sim wheel, data only; cached in .cache/).
+data: setup
+	@bash scripts/fetch_pose2sim.sh >/dev/null
+
 lint: setup
 	@$(ENV) ruff check src tests bench
 
-test: setup
+test: setup data
 	@$(ENV) ruff check src tests bench
 	@$(ENV) python -m pytest tests -q -p no:cacheprovider
 

@@ -107,3 +107,35 @@ def test_bad_inputs(tmp_path):
     assert open_videos([path, other], [cam, _camera("cam02", 64, 48)], fps=30.0).fps == 30.0
     with pytest.raises(InputError, match="scale"):
         open_videos([path], [cam], scale=0.0)
+
+
+# ------------------------------------------------------------------ real data (Pose2Sim demo)
+def _pose2sim_demo() -> Path:
+    import os
+
+    return (Path(os.environ.get("ARTRACK_CACHE", Path(__file__).resolve().parents[1] / ".cache"))
+            / "pose2sim/Pose2Sim/Demo_SinglePerson")
+
+
+@pytest.mark.skipif(not (_pose2sim_demo() / "calibration/Calib.qca.txt").is_file(),
+                    reason="Pose2Sim demo data missing: run scripts/fetch_pose2sim.sh (make test does)")
+def test_real_four_camera_recording_decodes_at_the_calibrated_size():
+    """The real Qualisys recording (portrait 1080x1920, 60 fps): each video matches its
+    camera's calibrated size, frames come synchronised, scaled, and hold a real picture."""
+    from artrack.cameras import load_calibration
+
+    demo = _pose2sim_demo()
+    cams = load_calibration(demo / "calibration/Calib.qca.txt")
+    videos = open_videos([demo / f"videos/{c.name}.mp4" for c in cams], cams, 0.25, max_frames=3)
+    assert videos.fps == pytest.approx(60.0, abs=0.5)
+    # calibrated 1088x1920 (Qualisys fov_video; the videos are 1080 wide, the 8-px case), scaled
+    assert [(c.width, c.height) for c in cams] == [(1088, 1920)] * 4
+    assert [(c.width, c.height) for c in videos.cameras] == [(272, 480)] * 4
+    frames = list(videos)
+    assert len(frames) == 3
+    for index, stamp, images in frames:
+        assert stamp == videos.stamp_ns(index)
+        assert sorted(images) == [c.name for c in cams]
+        for img in images.values():
+            assert img.shape == (480, 272, 3) and img.dtype == np.uint8
+            assert float(img.std()) > 10.0  # a real scene, not a blank frame
