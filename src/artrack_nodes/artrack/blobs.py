@@ -31,7 +31,8 @@ taken into the background once it has stayed unchanged for
 ``background_ghost_frames`` frames whose pixels on the silhouette have
 ``background_ghost_edge_ratio`` times stronger gradients in the background model
 than in the image (the outline of something that has left, not of something
-that is there) becomes background at once, even when a label claimed it.
+that is there) becomes background at once, unless it is in a tracked blob's support
+(a person standing still in front of a textured floor fails the edge test too).
 
 Blob classes. Each tracked label k is a Gaussian over ``o`` with a spatial part
 (mean (2,), covariance (2, 2), px) and a colour part (mean (3,), covariance
@@ -140,7 +141,8 @@ class BlobTrackerConfig:
     #: a foreground pixel in no tracked blob's support, unchanged for this many frames, becomes
     #: background at once (heals ghosts; 0 = never)
     background_static_frames: int = 45
-    #: a foreground region unchanged for this many frames is tested for being a ghost (0 = never)
+    #: a foreground region in no tracked blob's support, unchanged for this many frames, is tested for
+    #: being a ghost (0 = never)
     background_ghost_frames: int = 8
     #: ... and is a ghost (becomes background at once) when its silhouette edges are this many
     #: times stronger in the background model than in the image (0 = never)
@@ -433,8 +435,8 @@ class BackgroundModel:
         classified background (rate ``background_learning_rate``); unexplained: (H, W) bool
         foreground pixels in no tracked blob's support (rate ``background_ghost_rate``; taken
         into the background at once after ``background_static_frames`` unchanged frames).
-        Any foreground region unchanged for ``background_ghost_frames`` frames that is a
-        ghost (``_ghosts``) is taken into the background at once.
+        Any unexplained foreground region unchanged for ``background_ghost_frames`` frames
+        that is a ghost (``_ghosts``) is taken into the background at once.
         """
         previous, self._previous = self._previous, image
         if not self.ready or self._diff2 is None:
@@ -467,7 +469,9 @@ class BackgroundModel:
         if cfg.background_static_frames > 0:
             absorb |= (self.static >= cfg.background_static_frames) & unexplained
         if cfg.background_ghost_frames > 0 and cfg.background_ghost_edge_ratio > 0:
-            candidates = self.static >= cfg.background_ghost_frames
+            # a tracked blob's support is never a ghost: a person standing still in front of a
+            # textured background (floor tiles) otherwise fails the edge-ratio test and is erased
+            candidates = (self.static >= cfg.background_ghost_frames) & unexplained
             if candidates.any():
                 absorb |= self._ghosts(candidates, ~background, image_f)
         if absorb.any():
