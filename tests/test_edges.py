@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from artrack.edges import jacobian_rows, motion_statistics, normal_search, robust_weights
-from artrack.lie import exp_se3, make_se3
+from artrack.lie import GeometryError, exp_se3, make_se3
 from artrack.quadrics import ClippedQuadric, cylinder, ellipsoid, sample_contour, slab
 
 K = np.array([[400.0, 0.0, 160.0], [0.0, 400.0, 120.0], [0.0, 0.0, 1.0]])
@@ -74,6 +74,22 @@ def test_normal_search_picks_the_nearest_edge():
     img = cv2.GaussianBlur(img, (0, 0), 0.7)
     d, found = normal_search(img, np.array([[36.0, 20.0]]), np.array([[1.0, 0.0]]), 15.0)
     assert found[0] and d[0] == pytest.approx(-6.5, abs=0.2)
+    d, found = normal_search(img, np.array([[36.0, 20.0]]), np.array([[1.0, 0.0]]), 15.0, select="strongest")
+    assert found[0] and d[0] == pytest.approx(8.5, abs=0.2)
+    with pytest.raises(GeometryError):
+        normal_search(img, np.array([[36.0, 20.0]]), np.array([[1.0, 0.0]]), 15.0, select="best")
+
+
+def test_normal_search_colour_edge_without_grey_contrast():
+    img = np.zeros((40, 100, 3), np.uint8)
+    img[:, :50] = (200, 40, 113)  # BGR with nearly the grey level of the right half
+    img[:, 50:] = (40, 92, 72)
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    assert abs(int(grey[0, 10]) - int(grey[0, 90])) <= 2
+    pts, nrm = np.array([[46.3, 20.0]]), np.array([[1.0, 0.0]])
+    assert not normal_search(grey, pts, nrm, 8.0)[1][0]
+    d, found = normal_search(img, pts, nrm, 8.0)
+    assert found[0] and d[0] == pytest.approx(3.2, abs=0.3)
 
 
 def test_jacobian_rows_match_finite_differences():

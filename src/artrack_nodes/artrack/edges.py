@@ -39,10 +39,13 @@ def normal_search(
     step_px: float = 1.0,
     blur_sigma: float = 0.0,
     gradients: tuple[np.ndarray, np.ndarray] | None = None,
+    select: str = "nearest",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Signed distance to the nearest intensity edge along each normal (paper §3, Fig. 2).
 
-    gray_image: (H, W) single-channel image (any dtype; used as float32 intensity).
+    gray_image: (H, W) single-channel image (any dtype; used as float32 intensity), or (H, W, C)
+    with C <= 4 channels (e.g. BGR): then ``|dI/dn|`` is the root-sum-square over the channels of
+    each channel's directional derivative (a colour edge).
     points: (N, 2) pixel positions (x, y); normals: (N, 2) image directions (normalised here).
     max_dist_px: search half-length; samples are taken at ``k * step_px`` for
     ``|k * step_px| <= max_dist_px``, read from the Sobel gradient images by bilinear interpolation
@@ -52,7 +55,10 @@ def normal_search(
     wins (ties: the stronger), refined to sub-pixel by a parabola through the three samples around
     the maximum. The two end samples cannot be maxima, so the usable range is
     ``max_dist_px - step_px``. ``gradients`` = precomputed (gx, gy) float32 images (as from
-    :func:`cv2.Sobel`) to share between many searches of the same image.
+    :func:`cv2.Sobel`, (H, W) or (H, W, C)) to share between many searches of the same image.
+    select: ``'nearest'`` (the paper's rule, above) or ``'strongest'`` (the largest qualifying
+    maximum within the range; ties: the nearer) — more robust when a weak texture or shading
+    edge lies between the prediction and the true outline.
 
     Returns ``distance`` (N,) signed along the normal, pixels (NaN where nothing was found), and
     ``found`` (N,) bool. A missing edge is never reported as a zero distance.
@@ -71,8 +77,8 @@ def normal_search(
     nrm = nrm / np.where(ok, nlen, 1.0)[:, None]
     if gradients is None:
         img = np.asarray(gray_image)
-        if img.ndim != 2:
-            raise GeometryError(f"normal_search: gray_image must be (H, W), got shape {img.shape}")
+        if img.ndim != 2 and not (img.ndim == 3 and 1 <= img.shape[2] <= 4):
+            raise GeometryError(f"normal_search: image must be (H, W) or (H, W, C<=4), got shape {img.shape}")
         img = img.astype(np.float32)
         if blur_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
@@ -80,6 +86,8 @@ def normal_search(
         gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
     else:
         gx, gy = gradients
+    if select not in ("nearest", "strongest"):
+        raise GeometryError(f"normal_search: select must be 'nearest' or 'strongest', got {select!r}")
     kmax = int(np.floor(max_dist_px / step_px + 1e-9))
     if kmax < 2:
         raise GeometryError(
@@ -91,12 +99,18 @@ def normal_search(
     border = cv2.BORDER_CONSTANT
     gxs = cv2.remap(gx, sx, sy, cv2.INTER_LINEAR, borderMode=border, borderValue=0.0).astype(float)
     gys = cv2.remap(gy, sx, sy, cv2.INTER_LINEAR, borderMode=border, borderValue=0.0).astype(float)
-    g = np.abs(gxs * nrm[:, None, 0] + gys * nrm[:, None, 1])  # (N, S)
+    if gxs.ndim == 3:  # colour: root-sum-square of the channels' directional derivatives
+        g = np.sqrt(np.sum((gxs * nrm[:, None, 0, None] + gys * nrm[:, None, 1, None]) ** 2, axis=-1))
+    else:
+        g = np.abs(gxs * nrm[:, None, 0] + gys * nrm[:, None, 1])  # (N, S)
     mid = g[:, 1:-1]
     peak = (mid >= g[:, :-2]) & (mid > g[:, 2:]) & (mid >= threshold)
     peak &= ok[:, None]
     # nearest peak to the centre; among equal distances the stronger one
-    dist_rank = np.abs(offs[1:-1])[None, :] - 1e-9 * mid / (mid.max() + 1.0)
+    if select == "nearest":
+        dist_rank = np.abs(offs[1:-1])[None, :] - 1e-9 * mid / (mid.max() + 1.0)
+    else:
+        dist_rank = -mid + 1e-9 * np.abs(offs[1:-1])[None, :]
     score = np.where(peak, dist_rank, np.inf)
     k = np.argmin(score, axis=1)
     found = np.isfinite(score[np.arange(n), k])

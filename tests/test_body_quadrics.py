@@ -1,0 +1,104 @@
+"""The body model as clipped quadrics and its visible outline (ALGORITHMS.md §2 "Model")."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from artrack.body_model import Shape, load_body_model
+from artrack.body_quadrics import body_quadrics, sample_body, shape_quadrics
+from artrack.motion import pose_at
+from artrack.quadrics import quadric_value
+from artrack.synth import Renderer, default_rig
+
+
+@pytest.fixture(scope="module")
+def scene():
+    body = load_body_model()
+    cams = default_rig(4, 320, 240)
+    return body, cams, Renderer(body, cams, 3), body_quadrics(body)
+
+
+def boundary_distance(label: np.ndarray) -> np.ndarray:
+    """Distance (px) of every pixel to the nearest pixel on a label boundary (either side)."""
+    b = np.zeros(label.shape, bool)
+    dx = label[:, 1:] != label[:, :-1]
+    dy = label[1:] != label[:-1]
+    b[:, 1:] |= dx
+    b[:, :-1] |= dx
+    b[1:] |= dy
+    b[:-1] |= dy
+    return cv2.distanceTransform((~b).astype(np.uint8), cv2.DIST_L2, 5)
+
+
+def sample_distances(cam, samples, dist_img: np.ndarray) -> np.ndarray:
+    """Distances of the samples, mapped through the full (distorted) camera, to the label boundaries."""
+    uv, _ = cam.project((samples.points_cam - cam.t) @ cam.R)
+    ui = np.clip(np.round(uv).astype(int), 0, [cam.width - 1, cam.height - 1])
+    return dist_img[ui[:, 1], ui[:, 0]]
+
+
+def test_capsule_quadrics_are_the_capsule_surface():
+    rng = np.random.default_rng(0)
+    sh = Shape("capsule", "skin", p0=np.array([0.02, -0.1, 0.3]), p1=np.array([0.0, 0.15, 0.1]), radius=0.05)
+    parts = shape_quadrics(sh)
+    assert [p for p, _ in parts] == ["cylinder", "cap0", "cap1"]
+    # random points: on the capsule surface iff (distance to the segment) == r
+    X = rng.uniform(-0.3, 0.4, size=(4000, 3))
+    a = sh.p1 - sh.p0
+    s = np.clip((X - sh.p0) @ a / (a @ a), 0.0, 1.0)
+    dseg = np.linalg.norm(X - (sh.p0 + s[:, None] * a), axis=1)
+    Xs = sh.p0 + s[:, None] * a + (X - sh.p0 - s[:, None] * a) / dseg[:, None] * sh.radius  # surface points
+    for pts, expect in ((Xs, True), (X[np.abs(dseg - sh.radius) > 0.01], False)):
+        on = np.zeros(len(pts), bool)
+        for _, q in parts:
+            scale = np.abs(q.surface).max()
+            on |= (np.abs(quadric_value(q.surface, pts)) < 1e-9 * scale) & (quadric_value(q.clip, pts) <= 1e-12)
+        assert on.all() if expect else not on.any()
+    # a zero-length capsule is a sphere, ellipsoids / spheres are single unclipped quadrics
+    assert [p for p, _ in shape_quadrics(Shape("capsule", "skin", p0=np.zeros(3), p1=np.zeros(3), radius=0.1))] \
+        == ["sphere"]
+    ell = shape_quadrics(Shape("ellipsoid", "skin", centre=np.array([0, 0, 0.1]), radii=np.array([0.1, 0.2, 0.3])))
+    assert len(ell) == 1 and ell[0][1].clip is None
+    assert quadric_value(ell[0][1].surface, np.array([[0.0, 0.2, 0.1], [0.0, 0.0, 0.4]])) == pytest.approx([0, 0])
+
+
+@pytest.mark.parametrize("t", [0.0, 1.3, 2.7])
+def test_outline_samples_lie_on_rendered_silhouette_edges(scene, t):
+    body, cams, renderer, quads = scene
+    theta = pose_at("default", t, body)
+    _, labels = renderer.render(theta, noise_sigma=0.0, labels=True)
+    T = body.forward_kinematics(theta)
+    for cam, lab in zip(cams, labels):
+        shifted = T.copy()
+        shifted[:, :3, 3] += 0.08 * cam.R[0]  # the whole body moved 8 cm (~5 px) along the image x axis
+        dist_img = boundary_distance(lab)
+        s = sample_body(quads, cam.cam_from_world @ T, cam.K, (cam.width, cam.height), 4.0)
+        assert len(s) > 60
+        assert set(np.unique(s.link)) >= {1, 3, 6, 9, 12}  # torso, arms and thighs are seen from every side
+        d = sample_distances(cam, s, dist_img)
+        assert np.median(d) < 1.0 and np.mean(d < 1.5) > 0.85, cam.name
+        s_off = sample_body(quads, cam.cam_from_world @ shifted, cam.K, (cam.width, cam.height), 4.0)
+        assert np.median(sample_distances(cam, s_off, dist_img)) > 1.5, cam.name  # the check can fail
+
+
+def test_occlusion_drops_samples_off_the_silhouette(scene):
+    body, cams, renderer, quads = scene
+    theta = pose_at("default", 1.3, body)
+    _, labels = renderer.render(theta, noise_sigma=0.0, labels=True)
+    T = body.forward_kinematics(theta)
+    for cam, lab in zip(cams, labels):
+        dist_img = boundary_distance(lab)
+        E = cam.cam_from_world @ T
+        vis = sample_body(quads, E, cam.K, (cam.width, cam.height), 4.0)
+        every = sample_body(quads, E, cam.K, (cam.width, cam.height), 4.0, occlusion=False)
+        key = {tuple(np.round(u, 6)) for u in vis.uv}
+        hidden = np.array([tuple(np.round(u, 6)) not in key for u in every.uv])
+        assert hidden.sum() > 20  # torso / pelvis outline behind the limbs, limb ends inside the torso, ...
+        d_hidden = sample_distances(cam, type(every)(*(a[hidden] for a in (
+            every.uv, every.normals, every.points_cam, every.link, every.prim))), dist_img)
+        d_vis = sample_distances(cam, vis, dist_img)
+        assert np.mean(d_hidden < 1.5) < np.mean(d_vis < 1.5) - 0.15, cam.name
+        only = sample_body(quads, E, cam.K, (cam.width, cam.height), 4.0, links=[3])
+        assert len(only) and set(only.link) == {3}
