@@ -113,3 +113,23 @@ def test_generic_filter_matches_scalar_textbook():
     assert kf.K[0, 0, 0] == pytest.approx(5.0 / 6.0)
     assert kf.x_post[0, 0] == pytest.approx(50.0 / 6.0)
     assert kf.P_post[0, 0, 0] == pytest.approx(5.0 / 6.0)
+
+
+def test_projection_moves_velocity_with_position():
+    """Write-back of the constraint solver's result (ALGORITHMS.md §1) by estimate projection:
+    the position is set exactly and the velocity moves through its covariance with the
+    position, x ← x + P Hᵀ (H P Hᵀ)⁻¹ (d − H x); P is kept. A position-only overwrite would
+    leave the velocity to integrate every correction as motion."""
+    kf = ConstantAccelerationKF(np.zeros((2, 3)), 0.01, 1.0, 10.0, q=10.0)
+    for k in range(5):
+        kf.predict(0.1)
+        kf.update(np.full((2, 3), 0.05 * (k + 1)), np.eye(3) * 1e-3)
+    x, P = kf.x.copy(), kf.P.copy()
+    target = x[:, :3] + np.array([0.02, -0.01, 0.03])
+    kf.project_position(target, mask=np.array([True, False]))
+    np.testing.assert_allclose(kf.position[0], target[0], atol=1e-12)
+    np.testing.assert_array_equal(kf.x[1], x[1])
+    expected_v = x[0, 3:6] + P[0, 3:6, :3] @ np.linalg.solve(P[0, :3, :3], target[0] - x[0, :3])
+    np.testing.assert_allclose(kf.velocity[0], expected_v, atol=1e-12)
+    assert np.linalg.norm(kf.velocity[0] - x[0, 3:6]) > 1e-3  # the velocity did move
+    np.testing.assert_array_equal(kf.P, P)

@@ -187,6 +187,43 @@ class KalmanFilter:
         self.x, self.P = self.x_post, self.P_post
 
 
+    def project(self, d: np.ndarray, H: np.ndarray, mask: np.ndarray | None = None) -> None:
+        """Constrain the current state to ``H x = d`` by estimate projection (ALGORITHMS.md §1,
+        "the result is written back as the filters' new state").
+
+        ``x ← x + P Hᵀ (H P Hᵀ)⁻¹ (d − H x)``: the P⁻¹-weighted least change of the whole
+        state that satisfies the constraint (Simon & Chia's estimate projection), so that
+        writing back a position also moves the velocity and acceleration through their
+        cross-covariance with it, exactly as a noise-free measurement would. Overwriting
+        the position alone (``set_state``) instead leaves the velocity to integrate every
+        position correction as if it were motion. P is kept (the constraint is derived from
+        the filters' own estimates, not new information). d: (N, m); H: (m, n) or (N, m, n);
+        mask: (N,) bool, filters to constrain (default all).
+        """
+        H = np.asarray(H, dtype=float)
+        if H.ndim not in (2, 3) or H.shape[-1] != self.n_state:
+            raise KalmanDimensionError(
+                f"kalman: H has shape {H.shape}, expected (m, {self.n_state}) or (N, m, {self.n_state})"
+            )
+        m = H.shape[-2]
+        H = _broadcast_batch("H", H, self.n_batch, (m, self.n_state))
+        d = _check_shape("d", np.asarray(d, dtype=float), (self.n_batch, m))
+        if mask is None:
+            mask = np.ones(self.n_batch, dtype=bool)
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != (self.n_batch,):
+            raise KalmanDimensionError(f"kalman: mask has shape {mask.shape}, expected ({self.n_batch},)")
+        x = self.x.copy()
+        idx = np.flatnonzero(mask)
+        if idx.size:
+            Hs, Ps = H[idx], self.P[idx]
+            PHt = Ps @ np.swapaxes(Hs, 1, 2)
+            r = d[idx] - np.einsum("nij,nj->ni", Hs, x[idx])
+            x[idx] += np.einsum("nij,nj->ni", PHt, np.linalg.solve(Hs @ PHt, r[..., None])[..., 0])
+        self.x_post, self.P_post = x, self.P.copy()
+        self.x, self.P = self.x_post, self.P_post
+
+
 def constant_acceleration_F(dt: float, dim: int = 3) -> np.ndarray:
     """(3 dim, 3 dim) transition of the state [p (dim), v (dim), a (dim)] over dt seconds."""
     f = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
@@ -270,6 +307,11 @@ class ConstantAccelerationKF(KalmanFilter):
         """Measurement update with positions z: (N, d); R: (d, d) or (N, d, d) m²; mask: (N,) bool."""
         H = np.kron(np.array([[1.0, 0.0, 0.0]]), np.eye(self.dim))
         self.update_with(z, R, H, mask)
+
+    def project_position(self, positions: np.ndarray, mask: np.ndarray | None = None) -> None:
+        """Constrain the positions to ``positions`` (N, d) by estimate projection (``project``):
+        velocity and acceleration move with them through the covariance."""
+        self.project(positions, np.kron(np.array([[1.0, 0.0, 0.0]]), np.eye(self.dim)), mask)
 
     # ---------------------------------------------------------------- accessors
     @property

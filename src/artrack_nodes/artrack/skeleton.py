@@ -178,8 +178,8 @@ class FitConfig:
 class KinematicConfig:
     """Kalman filters + kinematic constraint solver."""
 
-    blob_jerk: float = 5.0
-    link_jerk: float = 5.0
+    blob_jerk: float = 200.0
+    link_jerk: float = 200.0
     init_position_sigma_m: float = 0.1
     init_velocity_sigma: float = 0.5
     init_acceleration_sigma: float = 3.0
@@ -195,6 +195,7 @@ class KinematicConfig:
     max_iterations: int = 8
     predict_iterations: int = 3
     angular_velocity_smoothing: float = 0.5
+    robust_scale: float = 3.0
 
 
 @dataclass
@@ -1181,13 +1182,20 @@ class KinematicEstimator(_Estimator):
             z[b], Rm[b] = blob.mean, self.measurement_cov(blob)
             S = self.blob_kf.P_prior[b, :3, :3] + Rm[b]
             nu = z[b] - self.blob_kf.x_prior[b, :3]
-            mask[b] = float(nu @ np.linalg.solve(S, nu)) <= self.cfg.measurement.gate_chi2
+            d2 = float(nu @ np.linalg.solve(S, nu))
+            mask[b] = d2 <= self.cfg.measurement.gate_chi2
+            if k.robust_scale > 0:
+                # Soft gate (Cauchy weight, as the baseline's robust fit): an unlikely innovation
+                # pulls less, but never not at all, so a filter that has fallen behind a fast limb
+                # is not locked out for good by the hard gate (it would coast away forever).
+                Rm[b] = Rm[b] * (1.0 + d2 / k.robust_scale**2)
         # Coasting filters (no accepted measurement) lose their velocity and acceleration gradually.
+        used = mask | (np.isfinite(z[:, 0]) & (k.robust_scale > 0))
         x = self.blob_kf.x.copy()
-        x[~mask, 3:6] *= k.coast_velocity_decay
-        x[~mask, 6:9] *= k.coast_acceleration_decay
+        x[~used, 3:6] *= k.coast_velocity_decay
+        x[~used, 6:9] *= k.coast_acceleration_decay
         self.blob_kf.x_prior = self.blob_kf.x = x
-        self.blob_kf.update(z, Rm, mask)
+        self.blob_kf.update(z, Rm, used)
         self.n_accepted = int(mask.sum())
         R_pred = exp_so3(self.omega * dt) @ self.R
         theta, res, terms = self._solve(
@@ -1203,9 +1211,7 @@ class KinematicEstimator(_Estimator):
         self.iterations = res.iterations
         p, R = self.kin.poses(theta)
         # Write the consistent answer back into the filters (paper §2.3).
-        xb = self.blob_kf.x.copy()
-        xb[:, :3] = self.kin.blob_points(p, R)
-        self.blob_kf.set_state(xb)
+        self.blob_kf.project_position(self.kin.blob_points(p, R))
         self.link_kf.update(p, np.eye(3) * k.writeback_sigma_m**2)
         if dt > 0:
             w = log_so3(R @ np.swapaxes(self.R, 1, 2)) / dt
@@ -1261,6 +1267,7 @@ class DynamicEstimator(KinematicEstimator):
     without observation springs (momentum carries the links forward)."""
 
     kind = "dynamic"
+    blowups = 0  # integration steps dropped because the solve became non-finite
 
     def _initialise(self, stamp_ns, theta, obs):
         super()._initialise(stamp_ns, theta, obs)
@@ -1310,7 +1317,15 @@ class DynamicEstimator(KinematicEstimator):
         terms = self._priors_callable(static)
         n = max(int(d.substeps), 1)
         for _ in range(n):
-            res = self.solver.step_dynamic(p, R, nu, dt / n, terms, d.linear_damping, d.angular_damping)
+            try:
+                res = self.solver.step_dynamic(p, R, nu, dt / n, terms, d.linear_damping, d.angular_damping)
+            except np.linalg.LinAlgError:
+                res = None
+            if res is None or not all(np.all(np.isfinite(a)) for a in (res.p, res.R, res.nu)):
+                # numerical blow-up (stiff springs against the sub-step): hold the pose, stop
+                # the motion, and let the next frame's observations take over
+                self.blowups += 1
+                return p, R, np.zeros_like(nu), terms
             p, R, nu = res.p, res.R, res.nu
         return p, R, nu, terms
 
