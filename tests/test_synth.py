@@ -191,3 +191,27 @@ def test_generate_scene_deterministic_and_ground_truth(body):
     other = list(generate_scene(SceneConfig(width=160, height=120, fps=10.0, duration_s=0.1, seed=5), body))
     assert not np.array_equal(other[0].images["cam01"], f1[0].images["cam01"])
     assert SceneConfig(occlusion=True).motion_name == "self_occlusion"
+
+
+def test_empty_start_shows_the_room_then_the_person(body, tmp_path):
+    """SceneConfig.empty_s: the room is empty (no ground truth) until the person appears, and
+    the motion's clock starts then, so a background model can learn a clean room first."""
+    from artrack.bags import read_scene, write_scene_bag
+    from artrack.motion import pose_at
+    from artrack.synth import scene_cameras
+
+    cfg = SceneConfig(width=160, height=120, fps=10.0, duration_s=0.5, seed=4, motion="line", empty_s=0.2)
+    frames = list(generate_scene(cfg, body))
+    assert [f.theta is None for f in frames] == [True, True, False, False, False]
+    room = Renderer(body, scene_cameras(cfg), cfg.seed).render(None, (), 0.0)
+    person = Renderer(body, scene_cameras(cfg), cfg.seed).render(pose_at("line", 0.0, body), (), 0.0)
+    for f in frames[:2]:  # the empty room, up to noise
+        assert np.abs(f.images["cam01"].astype(int) - room[0]).mean() < 3.0
+    assert np.abs(person[0].astype(int) - room[0]).max() > 100  # the person would show
+    np.testing.assert_allclose(frames[2].theta, pose_at("line", 0.0, body))
+    np.testing.assert_allclose(frames[4].theta, pose_at("line", 0.2, body))
+    path = tmp_path / "empty.mcap"
+    write_scene_bag(path, scene_cameras(cfg), frames, joint_names=body.joint_names)
+    scene = read_scene(path)
+    assert scene.n_frames == 5
+    assert list(scene.truth.stamps) == [f.stamp_ns for f in frames[2:]]

@@ -1071,7 +1071,7 @@ def write_scene_bag(
                         data=buf.reshape(-1),
                     )
                     bag.write(camera_topic(name, "image_raw/compressed"), stamp, msg)
-            if truth:
+            if truth and frame.joints is not None:  # no ground truth while nobody is there
                 if joint_names is None:
                     raise InputError(f"{path}: joint_names are needed to write the ground truth")
                 joints = np.asarray(frame.joints, dtype=np.float64).reshape(-1, 3)

@@ -46,6 +46,8 @@ def _check_synth_args(args: argparse.Namespace) -> None:
             raise InputError(f"--{opt} {v:g}: must be positive")
     if round(args.duration * args.fps) < 1:
         raise InputError(f"--duration {args.duration:g}: shorter than one frame at --fps {args.fps:g}")
+    if not (math.isfinite(args.empty_start) and 0 <= args.empty_start < args.duration):
+        raise InputError(f"--empty-start {args.empty_start:g}: must be >= 0 and shorter than --duration")
     if not (math.isfinite(args.noise) and args.noise >= 0):
         raise InputError(f"--noise {args.noise:g}: must be >= 0")
 
@@ -59,7 +61,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     config = SceneConfig(
         n_cameras=args.cameras, width=args.width, height=args.height, fps=args.fps, duration_s=args.duration,
         seed=args.seed, noise_sigma=args.noise, motion=args.motion, occlusion=args.occlusion,
-        distractor=args.distractor,
+        distractor=args.distractor, empty_s=args.empty_start,
     )
     body = load_body_model(args.body_model)
     cameras = scene_cameras(config)
@@ -315,6 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--motion", default="default", help="scripted motion (default: walk, wave, reach)")
     s.add_argument("--occlusion", action="store_true", help="include a self-occlusion segment")
     s.add_argument("--distractor", action="store_true", help="a second person walks through")
+    s.add_argument("--empty-start", type=float, default=0.0, metavar="S",
+                   help="the room is empty for the first S seconds, then the person appears (default 0)")
     s.add_argument("--image-format", default="raw", choices=["raw", "png", "jpeg"],
                    help="raw sensor_msgs/Image, or CompressedImage (png lossless, jpeg small)")
     s.add_argument("--body-model", default=None)

@@ -368,17 +368,18 @@ class Renderer:
                         (int(round(ax[0] * _ONE)), int(round(max(ax[1], 0.3) * _ONE))),
                         angle, 0.0, 360.0, colour, -1, line_type, _SHIFT)
 
-    def render(self, theta: np.ndarray, extra_thetas: Sequence[np.ndarray] = (), noise_sigma: float = 2.0,
+    def render(self, theta: np.ndarray | None, extra_thetas: Sequence[np.ndarray] = (), noise_sigma: float = 2.0,
                frame_index: int = 0, labels: bool = False):
-        """Render the target pose theta (n_dof,) and other persons in every camera.
+        """Render the target pose theta (n_dof,; None: no target, the empty room) and other
+        persons in every camera.
 
         Returns a list of BGR uint8 images (H, W, 3), one per camera; with
         labels=True also a list of uint8 label images (H, W): 0 background,
         link index + 1 for the target's links, OTHER_PERSON_LABEL for others
         (noise-free, painter's order, no anti-aliasing).
         """
-        persons = [(0, np.asarray(theta, float))] + [(k + 1, np.asarray(x, float))
-                                                     for k, x in enumerate(extra_thetas)]
+        persons = [(0, np.asarray(theta, float))] if theta is not None else []
+        persons += [(k + 1, np.asarray(x, float)) for k, x in enumerate(extra_thetas)]
         images, label_images = [], []
         for ci, cam in enumerate(self.cameras):
             img = self.background(cam).copy()
@@ -438,6 +439,7 @@ class SceneConfig:
     motion: str = "default"
     occlusion: bool = False
     distractor: bool = False
+    empty_s: float = 0.0  # the room is empty this long before the person appears (motion clock starts then)
 
     @property
     def n_frames(self) -> int:
@@ -455,7 +457,8 @@ class SynthFrame:
     """One rendered frame with ground truth.
 
     images: camera name -> (H, W, 3) BGR uint8; theta: (n_dof,) target pose;
-    joints: (15, 3) world positions of body.joint_names (m); blobs3d: the
+    joints: (15, 3) world positions of body.joint_names (m) (theta and joints are None
+    while the room is still empty, see SceneConfig.empty_s); blobs3d: the
     ground-truth blob features (centre and covariance from the body model);
     extra_thetas: poses of other persons (distractors).
     """
@@ -463,8 +466,8 @@ class SynthFrame:
     index: int
     stamp_ns: int
     images: dict[str, np.ndarray]
-    theta: np.ndarray
-    joints: np.ndarray
+    theta: np.ndarray | None  # None while the room is empty (SceneConfig.empty_s)
+    joints: np.ndarray | None
     blobs3d: list[Blob3D]
     extra_thetas: list[np.ndarray] = field(default_factory=list)
 
@@ -487,18 +490,18 @@ def generate_scene(config: SceneConfig, body: BodyModel | None = None,
     renderer = Renderer(body, cameras, config.seed)
     motion = config.motion_name
     for i in range(config.n_frames):
-        t = i / config.fps
-        theta = pose_at(motion, t, body)
-        extra = [pose_at("distractor", t, body)] if config.distractor else []
+        t = i / config.fps - config.empty_s  # the motion's clock
+        present = t >= 0.0
+        theta = pose_at(motion, t, body) if present else None
+        extra = [pose_at("distractor", t, body)] if config.distractor and present else []
         imgs = renderer.render(theta, extra, config.noise_sigma, frame_index=i)
-        T = body.forward_kinematics(theta)
         yield SynthFrame(
             index=i,
             stamp_ns=frame_stamp_ns(i, config.fps),
             images={c.name: im for c, im in zip(cameras, imgs, strict=True)},
             theta=theta,
-            joints=body.joint_positions(theta, T),
-            blobs3d=body.blobs3d(theta),
+            joints=body.joint_positions(theta) if present else None,
+            blobs3d=body.blobs3d(theta) if present else [],
             extra_thetas=extra,
         )
 
