@@ -3,8 +3,9 @@
 
 The scene (``artrack.synth.generate_scene``: the ``default`` motion — walking on a circle —,
 4 ring cameras, Gaussian pixel noise) is rendered once per resolution. The tracker
-(``artrack.edge_tracker.EdgeTracker``) starts from the *true* first-frame pose and then runs on
-its own, each frame's prediction being the previous frame's estimate (no motion model, no other
+(``artrack.edge_tracker.EdgeTracker``) starts from the *true* first-frame pose — from which it also
+learns each quadric's colour for edge polarity and the outline offset (``learn_appearance``) — and then
+runs on its own, each frame's prediction being the previous frame's estimate (no motion model, no other
 cue). It is run with all 4 views and with 1 view (cam01). For each run the table shows MPJPE
 (mm, over all frames after the first, all 15 output joints and the limb joints
 elbows/knees/wrists/ankles), the last-second MPJPE (drift), the worst frame, "held" (seconds until
@@ -57,6 +58,8 @@ def run(body, cams, frames, views: int, config: EdgeTrackerConfig, label: str) -
     use = cams[:views]
     tracker = EdgeTracker(body, use, config)
     E = body.forward_kinematics(frames[0].theta)  # correct first-frame pose
+    if config.polarity:  # appearance and outline offset from the first frame at its (correct) pose
+        tracker.learn_appearance({c.name: frames[0].images[c.name] for c in use}, E)
     pred = [body.transform_points(E, body.joint_links, body.joint_points)]
     stage = dict.fromkeys(STAGES, 0.0)
     t_total = 0.0

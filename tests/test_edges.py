@@ -191,3 +191,36 @@ def test_motion_statistics_plain_and_masking():
     assert robust_weights(np.array([0.0]), 2.0)[0] == 1.0
     with pytest.raises(ValueError):
         motion_statistics(J, m[:-1])
+
+
+def test_normal_search_polarity_skips_shading_edges_inside_the_outline():
+    """A shaded disc (darker rim, brighter core): searching outwards from inside the core, the nearest
+    edge is the shading ring; with the disc's colour cone only the outline (disc inside, background
+    outside) counts (ALGORITHMS.md §2 "Measurements", edge polarity)."""
+    from artrack.edges import fit_colour_cone
+
+    img = np.zeros((80, 80, 3), np.float32)
+    img[:] = (40.0, 160.0, 60.0)  # green background
+    yy, xx = np.mgrid[0:80, 0:80]
+    r = np.hypot(xx - 40.0, yy - 40.0)
+    colour = np.array([60.0, 80.0, 200.0])
+    img[r <= 20.0] = 0.6 * colour  # rim
+    img[r <= 15.0] = 1.0 * colour  # core: a shading edge at r = 15
+    img[:, 70:] = (200.0, 200.0, 40.0)  # a background edge at x = 69.5
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    pts, nrm = np.array([[53.0, 40.0]]), np.array([[1.0, 0.0]])  # r = 13, searching outwards
+    d, found = normal_search(None, pts, nrm, 10.0, colour_image=img, gradients=(
+        cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8), cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)))
+    assert found[0] and abs(d[0] - 2.0) < 0.6  # the shading edge
+    inside = img[r <= 19.0]
+    cone = fit_colour_cone(inside, margin=10.0)
+    model = (np.array([True]), cone.u[None], np.array([cone.s_lo]), np.array([cone.s_hi]), np.array([cone.perp_max]))
+    d, found = normal_search(None, pts, nrm, 10.0, colour_image=img, colour_model=model, gradients=(
+        cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8), cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)))
+    assert found[0] and abs(d[0] - 7.0) < 0.6  # the outline at r = 20
+    # a background edge (both sides unlike the disc) is not an outline either
+    grads = (cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8),
+             cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8))
+    assert normal_search(None, np.array([[67.0, 40.0]]), nrm, 5.0, gradients=grads)[1][0]
+    assert not normal_search(None, np.array([[67.0, 40.0]]), nrm, 5.0, colour_image=img, colour_model=model,
+                             gradients=grads)[1][0]

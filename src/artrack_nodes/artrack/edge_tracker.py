@@ -8,7 +8,12 @@ One :meth:`EdgeTracker.step` per video frame, starting from predicted link poses
    ``C = A c - b b^T``, clip and occlusion tests);
 2. *search* — from each sample a 1-D search along the image normal for the nearest
    (or strongest, see config) edge of the image gradient, grey or colour
-   (:func:`artrack.edges.normal_search`), giving the signed distance ``m`` (px);
+   (:func:`artrack.edges.normal_search`), giving the signed distance ``m`` (px). With ``polarity``
+   an edge must have the quadric's learnt colour inside and not outside
+   (:meth:`EdgeTracker.learn_appearance`, :class:`artrack.edges.ColourCone`): without it the
+   renderer's inner shading rings stop the search short whenever the body moves outwards, and each
+   frame recovers only part of its motion. The outline offset measured at the trusted pose
+   (rendered outlines ~0.5 px wide of the model) is subtracted from ``m``;
 3. *statistics* — Jacobian rows per sample (normal component of the image motion under the
    six generators, :func:`artrack.edges.jacobian_rows` batched over links), in the *link*
    frame with ``E = cam_from_world @ world_from_link``, so rows of all views are stacked for
@@ -46,7 +51,7 @@ import yaml
 from artrack.body_model import BodyModel
 from artrack.body_quadrics import BodySamples, body_quadrics, sample_body
 from artrack.cameras import Camera
-from artrack.edges import motion_statistics, normal_search, robust_weights
+from artrack.edges import ColourCone, fit_colour_cone, motion_statistics, normal_search, robust_weights
 from artrack.lie import inverse_se3, skew
 from artrack.propagation import Joint, articulated_update, tree_schedule
 
@@ -68,12 +73,16 @@ class EdgeTrackerConfig:
     blur_sigma: float = 0.8
     c_robust: float = 2.0
     robust_iterations: int = 1
-    iterations: int = 1
+    iterations: int = 3
     damping_translation: float = 400.0
     damping_rotation: float = 200.0
     min_found: int = 8
     occlusion: bool = True
     undistort: bool = True
+    polarity: bool = True
+    polarity_side_px: float = 1.5
+    appearance_margin: float = 10.0
+    learn_offset: bool = True
     eps: float = 1e-9
 
     def __post_init__(self) -> None:
@@ -83,6 +92,8 @@ class EdgeTrackerConfig:
             raise ValueError("EdgeTrackerConfig: damping_translation and damping_rotation must be >= 0")
         if self.iterations < 1 or self.robust_iterations < 0:
             raise ValueError("EdgeTrackerConfig: need iterations >= 1 and robust_iterations >= 0")
+        if self.polarity_side_px <= 0 or self.appearance_margin < 0:
+            raise ValueError("EdgeTrackerConfig: need polarity_side_px > 0 and appearance_margin >= 0")
         if self.select not in ("nearest", "strongest"):
             raise ValueError(f"EdgeTrackerConfig: select must be 'nearest' or 'strongest', got {self.select!r}")
 
@@ -171,6 +182,11 @@ class EdgeTracker:
         self.n_links = len(body.links)
         self._maps: dict[str, tuple[np.ndarray, np.ndarray] | None] = {}
         self.last_measurements: dict[str, CameraMeasurements] = {}
+        #: per body quadric, the appearance learnt by :meth:`learn_appearance` (None: not seen)
+        self.appearance: list[ColourCone | None] | None = None
+        #: signed outline offset (px, along the outward normal) measured at the trusted pose and
+        #: subtracted from every edge distance (:meth:`learn_appearance`)
+        self.outline_offset_px = 0.0
 
     # ------------------------------------------------------------------ images
     def _undistort(self, cam: Camera, img: np.ndarray) -> np.ndarray:
@@ -184,6 +200,10 @@ class EdgeTracker:
 
     def gradients(self, cam: Camera, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Sobel (gx, gy) float32 of the undistorted, blurred image (grey (H, W) or colour (H, W, 3))."""
+        return self.prepare(cam, image)[:2]
+
+    def prepare(self, cam: Camera, image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(gx, gy, image) float32: Sobel gradients of the undistorted, blurred image and that image."""
         img = np.asarray(image)
         if img.ndim == 3 and not self.config.colour:
             img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -192,12 +212,73 @@ class EdgeTracker:
             img = cv2.GaussianBlur(img, (0, 0), self.config.blur_sigma)
         gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
         gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
-        return gx, gy
+        return gx, gy, img
+
+    # ------------------------------------------------------------------ appearance (edge polarity)
+    def learn_appearance(self, images_by_camera: Mapping[str, np.ndarray], link_poses_world: np.ndarray) -> None:
+        """Learn every body quadric's colour (:class:`artrack.edges.ColourCone`) from images at a trusted pose.
+
+        Colours are read ``polarity_side_px`` and ``polarity_side_px + 1`` px inside every visible
+        contour sample (against its outward normal) in every given view, pooled per quadric (a quadric
+        with fewer than 8 colours takes its link's pool). Used by the edge search when ``polarity`` is
+        on: an outline edge has the quadric's colour inside and not outside (:func:`artrack.edges.normal_search`).
+        Typically called once with the first frame and its (initialised) pose; :meth:`step` calls it on
+        its first frame, at the predicted pose, if it was never called.
+        """
+        cfg = self.config
+        E = np.asarray(link_poses_world, dtype=float)
+        cols: list[np.ndarray] = []
+        prims: list[np.ndarray] = []
+        for cam in self.cameras:
+            if cam.name not in images_by_camera:
+                continue
+            img = self.prepare(cam, images_by_camera[cam.name])[2]
+            s = sample_body(self.quadrics, cam.cam_from_world @ E, cam.K, (cam.width, cam.height),
+                            cfg.spacing_px, occlusion=cfg.occlusion)
+            for d in (cfg.polarity_side_px, cfg.polarity_side_px + 1.0):
+                p = (s.uv - d * s.normals).astype(np.float32)
+                c = cv2.remap(img, p[:, 0:1], p[:, 1:2], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                inside = (p[:, 0] >= 0) & (p[:, 0] <= cam.width - 1) & (p[:, 1] >= 0) & (p[:, 1] <= cam.height - 1)
+                cols.append(c.reshape(len(p), -1)[inside].astype(float))
+                prims.append(s.prim[inside])
+        col = np.vstack(cols) if cols else np.zeros((0, 1))
+        prim = np.concatenate(prims) if prims else np.zeros(0, dtype=int)
+        links = np.array([q.link for q in self.quadrics])
+        per_link = {i: fit_colour_cone(col[links[prim] == i], cfg.appearance_margin) for i in range(self.n_links)}
+        self.appearance = []
+        for k, q in enumerate(self.quadrics):
+            own = col[prim == k]
+            self.appearance.append(fit_colour_cone(own, cfg.appearance_margin) if len(own) >= 8 else per_link[q.link])
+        self.outline_offset_px = 0.0
+        if cfg.learn_offset:
+            # the image outline vs the model's at the trusted pose (edge blur, anti-aliasing, clothing):
+            # the median signed distance of the edges found, with the polarity test just learnt
+            grads = {c.name: self.prepare(c, images_by_camera[c.name]) for c in self.cameras
+                     if c.name in images_by_camera}
+            self.measure(grads, E, dict.fromkeys(STAGES, 0.0))
+            d = np.concatenate([m.distance[m.found] for m in self.last_measurements.values()] or [np.zeros(0)])
+            if len(d) >= 8:
+                lim = 0.25 * cfg.search_px
+                self.outline_offset_px = float(np.clip(np.median(d), -lim, lim))
+
+    def _colour_model(self, prim: np.ndarray, channels: int):
+        """(has, u, s_lo, s_hi, perp_max) arrays for samples of primitives ``prim`` (M,), or None."""
+        if not self.config.polarity or self.appearance is None:
+            return None
+        n = len(self.quadrics)
+        has = np.zeros(n, dtype=bool)
+        u = np.zeros((n, channels))
+        lo, hi, pm = np.zeros(n), np.zeros(n), np.zeros(n)
+        for k, cone in enumerate(self.appearance):
+            if cone is not None and len(cone.u) == channels:
+                has[k], u[k], lo[k], hi[k], pm[k] = True, cone.u, cone.s_lo, cone.s_hi, cone.perp_max
+        return has[prim], u[prim], lo[prim], hi[prim], pm[prim]
 
     # ------------------------------------------------------------------ one iteration
-    def measure(self, grads: Mapping[str, tuple[np.ndarray, np.ndarray]], world_from_link: np.ndarray,
-                timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
-        """Per-link statistics (xi_hat (L, 6), C (L, 6, 6), link frames) at ``world_from_link`` (L, 4, 4)."""
+    def measure(self, grads: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray]], world_from_link: np.ndarray,
+                timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-link statistics (xi_hat (L, 6), C (L, 6, 6), link frames; measured (L,) bool) at
+        ``world_from_link`` (L, 4, 4); ``grads``: camera name -> :meth:`prepare` output."""
         cfg = self.config
         rows: list[np.ndarray] = []
         dists: list[np.ndarray] = []
@@ -211,8 +292,12 @@ class EdgeTracker:
             s = sample_body(self.quadrics, E, cam.K, (cam.width, cam.height), cfg.spacing_px,
                             occlusion=cfg.occlusion)
             t1 = time.perf_counter()
+            g = grads[cam.name]
+            model = self._colour_model(s.prim, 1 if g[2].ndim == 2 else g[2].shape[2])
             d, found = normal_search(None, s.uv, s.normals, cfg.search_px, threshold=cfg.threshold,
-                                     gradients=grads[cam.name], select=cfg.select)
+                                     gradients=g[:2], select=cfg.select, colour_image=g[2], colour_model=model,
+                                     side_px=cfg.polarity_side_px)
+            d = d - self.outline_offset_px
             t2 = time.perf_counter()
             J = _jacobian_batch(s.points_cam, s.normals, cam.K, E[s.link])
             rows.append(J)
@@ -277,12 +362,14 @@ class EdgeTracker:
         """
         timings = dict.fromkeys(STAGES, 0.0)
         t0 = time.perf_counter()
-        grads = {c.name: self.gradients(c, images_by_camera[c.name]) for c in self.cameras
+        grads = {c.name: self.prepare(c, images_by_camera[c.name]) for c in self.cameras
                  if c.name in images_by_camera}
         timings["gradients"] = (time.perf_counter() - t0) * 1e3
         E = np.array(link_poses_world, dtype=float, copy=True)
         if E.shape != (self.n_links, 4, 4):
             raise ValueError(f"EdgeTracker.step: link_poses_world must be ({self.n_links}, 4, 4), got {E.shape}")
+        if self.config.polarity and self.appearance is None:
+            self.learn_appearance(images_by_camera, E)
         xi_hat = np.zeros((self.n_links, 6))
         C = np.zeros((self.n_links, 6, 6))
         for _ in range(self.config.iterations):

@@ -26,7 +26,56 @@ import numpy as np
 
 from artrack.lie import GeometryError, inverse_se3, skew
 
-__all__ = ["jacobian_rows", "motion_statistics", "normal_search", "robust_weights"]
+__all__ = ["ColourCone", "body_like", "fit_colour_cone", "jacobian_rows", "motion_statistics", "normal_search",
+           "robust_weights"]
+
+
+class ColourCone:
+    """Appearance of one surface under shading: colours ``b ≈ s u`` (a ray in colour space).
+
+    u (C,) unit axis; s_lo, s_hi: brightness range along the axis; perp_max: largest distance from the
+    axis (grey levels). Shading (darker towards a silhouette, a renderer's rings, real Lambertian fall-off)
+    changes ``s`` only, a different material changes the chromaticity (``perp``) or leaves the range —
+    the "brightness / chromaticity distortion" model of background subtraction. Used for edge polarity
+    (:func:`normal_search` ``colour_model``): an outline edge has the surface's colour on its inner side
+    and something else on its outer side.
+    """
+
+    __slots__ = ("perp_max", "s_hi", "s_lo", "u")
+
+    def __init__(self, u: np.ndarray, s_lo: float, s_hi: float, perp_max: float):
+        self.u = np.asarray(u, dtype=float)
+        self.s_lo, self.s_hi, self.perp_max = float(s_lo), float(s_hi), float(perp_max)
+
+    def __repr__(self) -> str:
+        return (f"ColourCone(u={np.round(self.u, 3)}, s=[{self.s_lo:.1f}, {self.s_hi:.1f}], "
+                f"perp_max={self.perp_max:.1f})")
+
+
+def fit_colour_cone(colours: np.ndarray, margin: float = 10.0, low: float = 5.0, high: float = 95.0
+                    ) -> ColourCone | None:
+    """:class:`ColourCone` of colour samples (N, C) (or (N,) grey): axis = principal direction of the
+    uncentred second moment, brightness range = [low, high] percentiles of ``s`` widened by ``margin``,
+    ``perp_max`` = the ``high`` percentile of the distance from the axis plus ``margin``. None if N < 8."""
+    X = np.asarray(colours, dtype=float)
+    X = X.reshape(len(X), -1)
+    X = X[np.all(np.isfinite(X), axis=1)]
+    if len(X) < 8:
+        return None
+    _, vec = np.linalg.eigh(X.T @ X)
+    u = vec[:, -1] * (1.0 if vec[:, -1].sum() >= 0 else -1.0)
+    s = X @ u
+    perp = np.linalg.norm(X - s[:, None] * u[None, :], axis=1)
+    lo, hi = np.percentile(s, [low, high])
+    return ColourCone(u, lo - margin, hi + margin, float(np.percentile(perp, high)) + margin)
+
+
+def body_like(colours: np.ndarray, u: np.ndarray, s_lo: np.ndarray, s_hi: np.ndarray,
+              perp_max: np.ndarray) -> np.ndarray:
+    """(N, S) bool: colours (N, S, C) lie in the per-row cones (u (N, C), s_lo, s_hi, perp_max (N,))."""
+    s = np.einsum("nsc,nc->ns", colours, u)
+    perp = np.linalg.norm(colours - s[..., None] * u[:, None, :], axis=-1)
+    return (perp <= perp_max[:, None]) & (s >= s_lo[:, None]) & (s <= s_hi[:, None])
 
 
 def normal_search(
@@ -40,6 +89,9 @@ def normal_search(
     blur_sigma: float = 0.0,
     gradients: tuple[np.ndarray, np.ndarray] | None = None,
     select: str = "nearest",
+    colour_image: np.ndarray | None = None,
+    colour_model: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    side_px: float = 1.5,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Signed distance to the nearest intensity edge along each normal (paper §3, Fig. 2).
 
@@ -106,6 +158,25 @@ def normal_search(
     mid = g[:, 1:-1]
     peak = (mid >= g[:, :-2]) & (mid > g[:, 2:]) & (mid >= threshold)
     peak &= ok[:, None]
+    if colour_model is not None and colour_image is not None:
+        has, u, s_lo, s_hi, pmax = colour_model
+        has = np.asarray(has, dtype=bool)
+        if has.any():
+            cimg = np.asarray(colour_image, dtype=np.float32)
+            inner = offs[1:-1]
+            rows_m = np.flatnonzero(has)
+            pm, nm = pts[rows_m], nrm[rows_m]
+
+            def colours_at(shift: float) -> np.ndarray:
+                cx = (pm[:, None, 0] + (inner[None, :] + shift) * nm[:, None, 0]).astype(np.float32)
+                cy = (pm[:, None, 1] + (inner[None, :] + shift) * nm[:, None, 1]).astype(np.float32)
+                c = cv2.remap(cimg, cx, cy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(float)
+                return c.reshape(len(rows_m), len(inner), -1)
+
+            args = (np.asarray(u, float)[rows_m].reshape(len(rows_m), -1), np.asarray(s_lo, float)[rows_m],
+                    np.asarray(s_hi, float)[rows_m], np.asarray(pmax, float)[rows_m])
+            polar = body_like(colours_at(-side_px), *args) & ~body_like(colours_at(side_px), *args)
+            peak[rows_m] &= polar
     # nearest peak to the centre; among equal distances the stronger one
     if select == "nearest":
         dist_rank = np.abs(offs[1:-1])[None, :] - 1e-9 * mid / (mid.max() + 1.0)
