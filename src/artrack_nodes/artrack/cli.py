@@ -180,7 +180,8 @@ def cmd_track(args: argparse.Namespace) -> int:
     body = load_body_model(args.body_model)
     fps = args.fps or input_fps or 30.0
     config = load_pipeline_config(estimator=args.estimator, feedback=not args.no_feedback, fps=fps,
-                                  blob_config=args.blob_config, skeleton_config=args.skeleton_config)
+                                  blob_config=args.blob_config, skeleton_config=args.skeleton_config,
+                                  edges=args.edges, edge_config=args.edge_config)
     pipe = ClosedLoopPipeline(body, cameras, config)
     tmp, created = _start_track_out(out)
     try:
@@ -338,6 +339,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "(priors only label the start-up blobs)")
     t.add_argument("--fps", type=float, default=None,
                    help="nominal frame rate (first prediction step; videos: overrides the container's); default 30")
+    t.add_argument("--edges", action="store_true",
+                   help="also measure contour edges at the prediction and fuse them into the skeleton "
+                        "(baseline estimator; ALGORITHMS.md §2)")
+    t.add_argument("--edge-config", default=None, help="edge tracker tunables (default config/edge_features.yaml)")
     t.add_argument("--blob-config", default=None)
     t.add_argument("--skeleton-config", default=None)
     t.add_argument("--body-model", default=None)

@@ -46,7 +46,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
 from artrack.body_model import BodyModel
 from artrack.body_quadrics import BodySamples, body_quadrics, sample_body
@@ -114,8 +113,14 @@ class EdgeTrackerConfig:
     @classmethod
     def from_yaml(cls, path: str | Path) -> EdgeTrackerConfig:
         """Read ``config/edge_features.yaml`` (its ``edge_tracker`` mapping, or the top level)."""
-        data = yaml.safe_load(Path(path).read_text()) or {}
-        return cls.from_dict(data.get("edge_tracker", data))
+        from artrack.config import read_yaml  # one-line InputError naming the file
+        from artrack.errors import InputError
+
+        data = read_yaml(path)
+        try:
+            return cls.from_dict(data.get("edge_tracker", data))
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{path}: {exc}") from None
 
     def as_dict(self) -> dict[str, Any]:
         """Plain dict of every field."""
@@ -244,7 +249,10 @@ class EdgeTracker:
         col = np.vstack(cols) if cols else np.zeros((0, 1))
         prim = np.concatenate(prims) if prims else np.zeros(0, dtype=int)
         links = np.array([q.link for q in self.quadrics])
-        per_link = {i: fit_colour_cone(col[links[prim] == i], cfg.appearance_margin) for i in range(self.n_links)}
+        per_link = {}
+        for i in range(self.n_links):  # a link no view sees keeps no colour (no polarity test for it)
+            own = col[links[prim] == i] if len(prim) else col[:0]
+            per_link[i] = fit_colour_cone(own, cfg.appearance_margin) if len(own) >= 8 else None
         self.appearance = []
         for k, q in enumerate(self.quadrics):
             own = col[prim == k]

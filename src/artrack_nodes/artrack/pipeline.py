@@ -27,6 +27,8 @@ import numpy as np
 from .blobs import BlobTracker2D, BlobTrackerConfig
 from .body_model import BodyModel
 from .cameras import Camera
+from .edge_fusion import EdgeStage, LinkEdgeStatistics, combine
+from .edge_tracker import EdgeTrackerConfig
 from .errors import InputError
 from .messages import (
     blob_array_msg,
@@ -54,6 +56,10 @@ class PipelineConfig:
     fps: float = 30.0
     blob: BlobTrackerConfig = field(default_factory=BlobTrackerConfig)
     skeleton: dict[str, Any] = field(default_factory=dict)
+    #: edge features (ALGORITHMS.md §2) measured at the prediction and fused into the
+    #: skeleton (baseline estimator) as soft constraints on the links; off by default
+    edges: bool = False
+    edge: EdgeTrackerConfig = field(default_factory=EdgeTrackerConfig)
 
 
 class FrameClock:
@@ -112,9 +118,10 @@ class SkeletonStage:
         self.estimator = make_estimator(config.estimator, body, cameras, config.skeleton)
         self.clock = FrameClock(config.fps)
 
-    def step(self, stamp_ns: int, blobs_by_camera: Mapping[str, list[Blob2D]]) -> tuple[BodyEstimate, BodyEstimate]:
+    def step(self, stamp_ns: int, blobs_by_camera: Mapping[str, list[Blob2D]],
+             edges: LinkEdgeStatistics | None = None) -> tuple[BodyEstimate, BodyEstimate]:
         ordered = {name: blobs_by_camera[name] for name in sorted(blobs_by_camera)}
-        estimate = self.estimator.update(stamp_ns, ordered)
+        estimate = self.estimator.update(stamp_ns, ordered, edges)
         prediction = self.estimator.predict(self.clock.next_stamp(stamp_ns))
         return estimate, prediction
 
@@ -171,6 +178,9 @@ class ClosedLoopPipeline:
         self.blob_stages = {c.name: BlobStage(c.name, body, self.config) for c in self.cameras}
         self.skeleton = SkeletonStage(body, self.cameras, self.config)
         self.projection = ProjectionStage(body, self.cameras)
+        self.edge_stages = ({c.name: EdgeStage(c, body, self.config.edge) for c in self.cameras}
+                            if self.config.edges else {})
+        self.reference: np.ndarray | None = None  # world_from_link of the last prediction (edges)
         self.priors: dict[str, list[Prior2D]] = {}
         self.frames = 0
 
@@ -186,13 +196,22 @@ class ClosedLoopPipeline:
             blobs[name] = self.wire.blobs(stamp_ns, name, stage.step(images[name], priors))
             used[name] = priors if stage.used_priors else None
         t1 = time.perf_counter()
-        estimate, prediction = self.skeleton.step(stamp_ns, blobs)
+        edges = None
+        if self.edge_stages and self.reference is not None:
+            edges = combine([self.edge_stages[name].step(images[name], self.reference)
+                             for name in sorted(images) if name in self.edge_stages])
+        t_edges = time.perf_counter()
+        estimate, prediction = self.skeleton.step(stamp_ns, blobs, edges)
         t2 = time.perf_counter()
-        projected = self.projection.step(self.wire.body(prediction))
+        wired = self.wire.body(prediction)
+        self.reference = link_poses(wired) if self.edge_stages else None
+        projected = self.projection.step(wired)
         self.priors = {name: self.wire.priors(name, p, prediction.stamp_ns) for name, p in projected.items()}
         t3 = time.perf_counter()
         self.frames += 1
-        timings = {"blobs_2d": (t1 - t0) * 1e3, "skeleton_3d": (t2 - t1) * 1e3, "projection": (t3 - t2) * 1e3}
+        timings = {"blobs_2d": (t1 - t0) * 1e3, "skeleton_3d": (t2 - t_edges) * 1e3, "projection": (t3 - t2) * 1e3}
+        if self.edge_stages:
+            timings["edges"] = (t_edges - t1) * 1e3
         return FrameResult(stamp_ns, blobs, estimate, prediction, used, self.priors, timings)
 
 
@@ -202,10 +221,25 @@ def load_pipeline_config(
     fps: float = 30.0,
     blob_config: str | None = None,
     skeleton_config: str | None = None,
+    edges: bool = False,
+    edge_config: str | None = None,
 ) -> PipelineConfig:
-    """PipelineConfig from the switches and the two tunables files in config/."""
+    """PipelineConfig from the switches and the tunables files in config/."""
     from .config import config_path, load_dataclass_yaml, read_yaml
 
     blob = load_dataclass_yaml(config_path(blob_config, "blob_features.yaml"), BlobTrackerConfig)
     skeleton = read_yaml(config_path(skeleton_config, "skeleton.yaml"))
-    return PipelineConfig(estimator=estimator, feedback=feedback, fps=fps, blob=blob, skeleton=skeleton)
+    edge = EdgeTrackerConfig.from_yaml(config_path(edge_config, "edge_features.yaml"))
+    return PipelineConfig(estimator=estimator, feedback=feedback, fps=fps, blob=blob, skeleton=skeleton,
+                          edges=edges, edge=edge)
+
+
+def link_poses(body: BodyEstimate) -> np.ndarray | None:
+    """(L, 4, 4) world_from_link of an estimate's links (None if it has none: not tracking)."""
+    if not body.links:
+        return None
+    E = np.tile(np.eye(4), (len(body.links), 1, 1))
+    for i, link in enumerate(body.links):
+        E[i, :3, :3] = link.rotation
+        E[i, :3, 3] = link.position
+    return E

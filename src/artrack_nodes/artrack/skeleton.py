@@ -103,6 +103,7 @@ from .constraints import (
 )
 from .errors import InputError
 from .kalman import ConstantAccelerationKF
+from .lie import inverse_se3, log_se3
 from .triangulation import midpoint, triangulate_blob, triangulate_blobs
 from .types import (
     STATUS_INITIALIZING,
@@ -172,6 +173,8 @@ class FitConfig:
     max_nfev: int = 40
     predict_velocity_sigma: float = 1.0
     robust_scale: float = 3.0
+    edge_sigma_px: float = 1.0
+    edge_min_found: int = 8
 
 
 @dataclass
@@ -412,6 +415,27 @@ class PointTarget:
     info: np.ndarray
 
 
+@dataclass
+class LinkGoals:
+    """Soft constraints on link motions for :func:`fit_pose`: for links (G,), the reference
+    poses' inverses (G, 4, 4) (link_from_world at the reference), the measured motions
+    xi_hat (G, 6) in the link frames and whiteners sqrt_information (G, 6, 6) (Sᵀ S = C)."""
+
+    links: np.ndarray
+    inverse_reference: np.ndarray
+    xi_hat: np.ndarray
+    sqrt_information: np.ndarray
+
+    @classmethod
+    def from_edges(cls, stats, sigma_px: float, min_found: int = 0) -> LinkGoals:
+        """From combined :class:`artrack.edge_fusion.LinkEdgeStatistics`; the information is
+        scaled by 1/sigma_px² (the edge measurement noise, px)."""
+        use = np.flatnonzero(stats.measured & (stats.samples_found >= min_found))
+        xi = stats.xi_hat()[use]
+        S = np.array([_whitener(stats.information[i] / sigma_px**2) for i in use]).reshape(-1, 6, 6)
+        return cls(use, inverse_se3(stats.reference[use]), xi, S)
+
+
 def _whitener(info: np.ndarray) -> np.ndarray:
     """U with Uᵀ U = info (so ‖U e‖² = eᵀ info e); eigenvalues floored."""
     w, V = np.linalg.eigh(0.5 * (info + info.T))
@@ -428,16 +452,20 @@ def fit_pose(
     previous_sigma: float = 1.0,
     max_nfev: int = 40,
     robust_scale: float = 0.0,
+    link_goals: LinkGoals | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
-    """Bounded least-squares fit of theta to 3-D point targets.
+    """Bounded least-squares fit of theta to 3-D point targets (and, optionally, link motions).
 
     Minimises ``½ Σ ‖U_k (x_k(θ) − y_k)‖² + ½ Σ_j ((θ_j − rest_j)/σ_r)² + ½ Σ_j ((θ_j −
     prev_j)/σ_p)²`` (regularisers on the non-root dofs j) subject to the joint limits
     (``scipy.optimize.least_squares``, 'trf'), with a batched finite-difference Jacobian
     (one FK call). rest_sigma: scalar or per-dof (n_dof,) rad. robust_scale > 0: Cauchy loss
     on the whitened residuals with this scale (sigmas), so that a grossly wrong target (a
-    mislabelled blob) pulls little; 0: plain least squares. Returns (theta (n_dof,), cost,
-    cov_theta (n_dof, n_dof) = (JᵀJ)⁺ at the solution, robust weights included).
+    mislabelled blob) pulls little; 0: plain least squares. link_goals: soft constraints on
+    link poses, ``½ Σ_i ‖S_i (log(E_ref,i⁻¹ E_i(θ)) − ξ̂_i)‖²`` (the edge statistics of
+    ALGORITHMS.md §2 as information ``S_iᵀ S_i`` on each link's motion, in the link frame).
+    Returns (theta (n_dof,), cost, cov_theta (n_dof, n_dof) = (JᵀJ)⁺ at the solution, robust
+    weights included).
     """
     lo, hi = body.lower, body.upper
     span = np.maximum(hi - lo, 1e-9)
@@ -456,28 +484,28 @@ def fit_pose(
         reg_w.append(np.full(jd.size, 1.0 / previous_sigma))
         reg_c.append(np.asarray(previous, float)[jd])
 
-    def points(thetas: np.ndarray) -> np.ndarray:
-        T = body.forward_kinematics(thetas)
-        return body.transform_points(T, links, local)
-
-    def residual_from_points(x: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    def residuals(theta: np.ndarray) -> np.ndarray:
+        T = body.forward_kinematics(theta)
+        x = body.transform_points(T, links, local)
         r = [np.einsum("pij,...pj->...pi", U, x - y).reshape(*x.shape[:-2], -1)]
+        if link_goals is not None and len(link_goals.links):
+            g = link_goals
+            xi = log_se3(np.einsum("gij,...gjk->...gik", g.inverse_reference, T[..., g.links, :, :]))
+            r.append(np.einsum("gij,...gj->...gi", g.sqrt_information, xi - g.xi_hat).reshape(*x.shape[:-2], -1))
         for w, c in zip(reg_w, reg_c, strict=True):
             r.append(np.broadcast_to(w * (theta[..., jd] - c), (*x.shape[:-2], jd.size)))
         return np.concatenate(r, axis=-1)
 
-    def fun(theta):
-        return residual_from_points(points(theta), theta)
-
+    fun = residuals
     h = 1e-6
 
     def jac(theta):
         batch = theta[None] + h * np.eye(body.n_dof)
         batch = np.vstack([theta[None], batch])
-        r = residual_from_points(points(batch), batch)
+        r = residuals(batch)
         return ((r[1:] - r[0]) / h).T
 
-    if len(targets) == 0 and not reg_w:
+    if len(targets) == 0 and not reg_w and (link_goals is None or not len(link_goals.links)):
         return x0, 0.0, np.eye(body.n_dof)
     loss = ("cauchy", float(robust_scale)) if robust_scale > 0 else ("linear", 1.0)
     res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", max_nfev=max_nfev, x_scale=1.0,
@@ -697,9 +725,13 @@ class _Estimator:
         return None
 
     # -- update ----------------------------------------------------------------
-    def update(self, stamp_ns: int, blobs_by_camera: Mapping[str, Sequence[Blob2D]]) -> BodyEstimate:
-        """Estimate at stamp_ns from the 2-D blobs of all cameras ({camera name: [Blob2D]})."""
+    def update(self, stamp_ns: int, blobs_by_camera: Mapping[str, Sequence[Blob2D]], edges=None) -> BodyEstimate:
+        """Estimate at stamp_ns from the 2-D blobs of all cameras ({camera name: [Blob2D]}) and,
+        optionally, the combined edge statistics of this frame
+        (:class:`artrack.edge_fusion.LinkEdgeStatistics`; used by the baseline fit as soft
+        constraints on the links, ALGORITHMS.md §2 "Fusion"; the Kalman estimators ignore them)."""
         stamp_ns = int(stamp_ns)
+        self._edges = edges
         self._check_cameras(blobs_by_camera)
         if self.stamp_ns is not None and stamp_ns < self.stamp_ns:
             self.reset()  # time went backwards (a bag looped): start again
@@ -1018,6 +1050,8 @@ class BaselineEstimator(_Estimator):
         f = self.cfg.fit
         dt = (stamp_ns - self.stamp_ns) * 1e-9
         targets = self._blob_targets(obs)
+        edges = getattr(self, "_edges", None)
+        goals = LinkGoals.from_edges(edges, f.edge_sigma_px, f.edge_min_found) if edges is not None else None
         theta, _, cov = fit_pose(
             self.body,
             self.theta,
@@ -1028,6 +1062,7 @@ class BaselineEstimator(_Estimator):
             f.previous_sigma_rad,
             f.max_nfev,
             f.robust_scale,
+            goals,
         )
         self._set_pose(theta, cov, self.poses, dt)
 

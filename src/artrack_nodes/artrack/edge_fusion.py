@@ -1,0 +1,113 @@
+"""Edge statistics per camera for the skeleton — ALGORITHMS.md §2 "Fusion" with §1.
+
+Each camera's edge stage measures the body's contour edges at the *predicted* pose
+(:class:`artrack.edge_tracker.EdgeTracker`: contour samples, normal search with edge
+polarity, robust per-link statistics, eqs. 7-10) and hands the skeleton one Gaussian per
+link in information form, in the link's own frame (``E = E_ref exp(xi)``, see
+:mod:`artrack.lie`):
+
+    C_i  (6, 6)   information of the link's motion from this camera's edges (px⁻² per m², rad²)
+    eta_i (6,)    C_i xi_hat_i
+
+Cameras combine by summing (all share ``xi`` per link, §2); the skeleton then uses
+``(xi_i - xi_hat_i)ᵀ C_i (xi_i - xi_hat_i) / sigma²`` as a soft constraint on each link
+(:func:`artrack.skeleton.fit_pose`, ``link_goals``). No damping prior is included here:
+links and directions the edges do not see carry zero information and are left to the blobs
+and the body model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .body_model import BodyModel
+from .cameras import Camera
+from .edge_tracker import STAGES, EdgeTracker, EdgeTrackerConfig
+
+__all__ = ["EdgeStage", "LinkEdgeStatistics", "combine"]
+
+
+@dataclass
+class LinkEdgeStatistics:
+    """Per-link edge information about ``reference`` (L = number of body links).
+
+    reference: (L, 4, 4) world_from_link at which the motions are measured (the prediction);
+    information: (L, 6, 6) C_i; information_vector: (L, 6) eta_i = C_i xi_hat_i;
+    samples_found: (L,) edges found per link; cameras: the views summed in.
+    """
+
+    reference: np.ndarray
+    information: np.ndarray
+    information_vector: np.ndarray
+    samples_found: np.ndarray
+    cameras: tuple[str, ...] = ()
+
+    @property
+    def measured(self) -> np.ndarray:
+        """(L,) bool: links with any edge information."""
+        return np.any(self.information != 0, axis=(1, 2))
+
+    def xi_hat(self) -> np.ndarray:
+        """(L, 6) the MAP motion of each measured link alone (pseudo-inverse; zero where unmeasured)."""
+        out = np.zeros_like(self.information_vector)
+        for i in np.flatnonzero(self.measured):
+            out[i] = np.linalg.lstsq(self.information[i], self.information_vector[i], rcond=1e-9)[0]
+        return out
+
+
+def combine(stats: Sequence[LinkEdgeStatistics]) -> LinkEdgeStatistics | None:
+    """Sum the statistics of several cameras (the same reference pose); None for none."""
+    stats = [s for s in stats if s is not None]
+    if not stats:
+        return None
+    ref = stats[0].reference
+    for s in stats[1:]:
+        if s.reference.shape != ref.shape or not np.allclose(s.reference, ref, atol=1e-9):
+            raise ValueError("edge statistics about different reference poses cannot be combined")
+    return LinkEdgeStatistics(
+        ref.copy(),
+        np.sum([s.information for s in stats], axis=0),
+        np.sum([s.information_vector for s in stats], axis=0),
+        np.sum([s.samples_found for s in stats], axis=0),
+        tuple(c for s in stats for c in s.cameras),
+    )
+
+
+class EdgeStage:
+    """One camera's edge measurements at the predicted pose (the offline form of the
+    ``edge_features`` node). The edge-polarity colours are learnt on the first frame it is
+    given, at that frame's reference pose (:meth:`EdgeTracker.learn_appearance`)."""
+
+    def __init__(self, camera: Camera, body: BodyModel, config: EdgeTrackerConfig | None = None):
+        self.camera = camera
+        self.tracker = EdgeTracker(body, [camera], config)
+        self.n_links = len(body.links)
+        self.timings_ms: dict[str, float] = {}
+
+    def step(self, image_bgr: np.ndarray, reference: np.ndarray) -> LinkEdgeStatistics:
+        """Statistics of one image about ``reference`` (L, 4, 4) world_from_link."""
+        cam, tr = self.camera, self.tracker
+        E = np.asarray(reference, dtype=float)
+        if E.shape != (self.n_links, 4, 4):
+            raise ValueError(f"edge stage '{cam.name}': reference must be ({self.n_links}, 4, 4), got {E.shape}")
+        if tr.config.polarity and tr.appearance is None:
+            tr.learn_appearance({cam.name: image_bgr}, E)
+        timings = dict.fromkeys(STAGES, 0.0)
+        grads = {cam.name: tr.prepare(cam, image_bgr)}
+        xi_d, C_d, measured = tr.measure(grads, E, timings)
+        cfg = tr.config
+        D = np.diag([cfg.damping_translation] * 3 + [cfg.damping_rotation] * 3)
+        # measure() returns the damped solution xi' = (C + D)⁻¹ eta: undo the damping
+        eta = np.einsum("nij,nj->ni", C_d, xi_d)
+        C = C_d - D
+        C[~measured] = 0.0
+        eta[~measured] = 0.0
+        m = tr.last_measurements.get(cam.name)
+        found = np.zeros(self.n_links, dtype=np.int64)
+        if m is not None:
+            np.add.at(found, m.samples.link[m.found], 1)
+        self.timings_ms = timings
+        return LinkEdgeStatistics(E.copy(), 0.5 * (C + np.swapaxes(C, 1, 2)), eta, found, (cam.name,))
