@@ -18,7 +18,16 @@ from artrack.bags import read_scene
 from artrack.errors import ArtrackError
 from artrack.messages import ns_from_time
 
-from .common import BODY_TOPIC, RESULT_QOS, CameraPublishers, declare_all, msgs, run_node
+from .common import (
+    BODY_TOPIC,
+    PREDICTION_TOPIC,
+    RESULT_QOS,
+    CameraPublishers,
+    camera_topic,
+    declare_all,
+    msgs,
+    run_node,
+)
 
 PARAMS = [
     ("bag", "", "recording to play: rosbag2 folder or .mcap/.db3 file, or ROS 1 .bag"),
@@ -29,7 +38,8 @@ PARAMS = [
     ("frame_timeout_s", 30.0, "lockstep: wait this long for a frame's body before going on, s"),
     ("max_frames", 0, "stop after this many frames (0: all)"),
     ("linger_s", 1.0, "after the last frame, keep running this long, s"),
-    ("wait_for_recorder", False, "also wait until a recorder subscribes to /artrack/body before starting"),
+    ("wait_for_recorder", False, "also wait until a recorder subscribes to the body, prediction, blob and prior "
+                                 "topics before starting"),
 ]
 
 
@@ -70,9 +80,18 @@ class BagPlayerNode(Node):
     def _graph_ready(self) -> bool:
         if self.pubs.subscriber_count() < 1:
             return False
-        if self.p["wait_for_recorder"] and self.count_subscribers(BODY_TOPIC) < 2:  # the player + a recorder
+        if self.p["wait_for_recorder"] and not self._recorder_ready():
             return False
         return not self.lockstep or self.count_publishers(BODY_TOPIC) >= 1
+
+    def _recorder_ready(self) -> bool:
+        """The recorder has subscribed to the graph's topics next to their regular readers (it
+        subscribes as it discovers them: frames played before would be missing from its bag)."""
+        needed = {BODY_TOPIC: 2, PREDICTION_TOPIC: 2}  # player / feedback_projection + recorder
+        for n in self.names:
+            needed[camera_topic(n, "blobs")] = 2  # skeleton + recorder
+            needed[camera_topic(n, "blob_priors")] = 2  # blob_features + recorder
+        return all(self.count_subscribers(t) >= k for t, k in needed.items())
 
     def _advance(self) -> bool:
         if self.p["max_frames"] and self.sent >= int(self.p["max_frames"]):
