@@ -28,9 +28,13 @@ Kinds
     clipped pose), a weak "gravity" on limbs without blobs, and weak goals from
     the link-origin filters. The solver iterates to a globally consistent pose,
     which is written back into the filters ("the results then become the new
-    state estimates"). ``predict`` runs the filters forward and solves the
-    constraints for the predicted goals; its blobs carry the prediction
-    covariance from ``P_prior``.
+    state estimates"). Before the filters' update every blob is classified against
+    one consistent body: the body model fitted robustly to the frame's blobs (as
+    the baseline); a blob far from that fit gets its R inflated by a Cauchy weight
+    (``kinematic.outlier_fit_scale``), since each filter alone judges its blob only
+    against its own prediction and would follow a consistently mislabelled blob.
+    ``predict`` runs the filters forward and solves the constraints for the
+    predicted goals; its blobs carry the prediction covariance from ``P_prior``.
 
 ``'dynamic'`` — full dynamics (paper §2.1): links with masses and inertias,
     observations as damped springs, ``q̈ = W (Q + Jᵀλ)`` integrated in
@@ -199,6 +203,7 @@ class KinematicConfig:
     predict_iterations: int = 3
     angular_velocity_smoothing: float = 0.5
     robust_scale: float = 3.0
+    outlier_fit_scale: float = 1.5
 
 
 @dataclass
@@ -214,6 +219,7 @@ class DynamicConfig:
     limit_stiffness: float = 50.0
     gravity_weight: float = 2.0
     predict_velocity_sigma: float = 0.5
+    outlier_fit_scale: float = 0.0
 
 
 @dataclass
@@ -1212,6 +1218,7 @@ class KinematicEstimator(_Estimator):
         z = np.full((B, 3), np.nan)
         Rm = np.tile(np.eye(3), (B, 1, 1))
         mask = np.zeros(B, bool)
+        _, fit_d2 = self._outlier_fit(obs, k.outlier_fit_scale)
         for lab, blob in obs.items():
             b = self.kin.blob_index[lab]
             z[b], Rm[b] = blob.mean, self.measurement_cov(blob)
@@ -1219,6 +1226,10 @@ class KinematicEstimator(_Estimator):
             nu = z[b] - self.blob_kf.x_prior[b, :3]
             d2 = float(nu @ np.linalg.solve(S, nu))
             mask[b] = d2 <= self.cfg.measurement.gate_chi2
+            if lab in fit_d2:
+                # Outlier classification against the frame's robust body fit (_outlier_fit):
+                # a blob the consistent body does not explain pulls its filter little.
+                Rm[b] = Rm[b] * (1.0 + fit_d2[lab] / k.outlier_fit_scale**2)
             if k.robust_scale > 0:
                 # Soft gate (Cauchy weight, as the baseline's robust fit): an unlikely innovation
                 # pulls less, but never not at all, so a filter that has fallen behind a fast limb
@@ -1254,6 +1265,36 @@ class KinematicEstimator(_Estimator):
             self.omega = (1.0 - a) * self.omega + a * w
         self.theta, self.p, self.R = theta, p, R
         self.link_cov = self._link_covariance(p, R, terms)
+
+    def _outlier_fit(self, obs, scale):
+        """Outlier classification against one consistent body (ALGORITHMS.md §1, measurement
+        step): the body model fitted robustly (Cauchy loss ``fit.robust_scale``, as the baseline)
+        to this frame's 3-D blobs, started from the last pose moved by the root filter's
+        prediction. Returns (theta_fit or None, {label: whitened squared residual of the blob
+        to that fit})."""
+        f = self.cfg.fit
+        if scale <= 0 or len(obs) < self.cfg.tracking.min_blobs:
+            return None, {}
+        theta0 = self.theta.copy()
+        if self.kind == "kinematic":
+            theta0[0:3] = self.link_kf.x_prior[0, :3]
+        theta, _, _ = fit_pose(
+            self.body,
+            theta0,
+            self._blob_targets(obs),
+            self.kin.rest,
+            self.rest_sigma_dof,
+            self.theta,
+            f.previous_sigma_rad,
+            f.max_nfev,
+            f.robust_scale,
+        )
+        centres = self.body.blob_centres(theta)
+        d2 = {}
+        for lab, blob in obs.items():
+            r = blob.mean - centres[self.kin.blob_index[lab]]
+            d2[lab] = float(r @ np.linalg.solve(self.measurement_cov(blob), r))
+        return theta, d2
 
     def _n_used(self, obs):
         return self.n_accepted
@@ -1366,10 +1407,13 @@ class DynamicEstimator(KinematicEstimator):
 
     def _observation_springs(self, obs) -> list:
         d = self.cfg.dynamic
+        _, fit_d2 = self._outlier_fit(obs, d.outlier_fit_scale)
         out = []
         for lab, blob in obs.items():
             b = self.kin.blob_index[lab]
-            w, V = np.linalg.eigh(np.linalg.inv(self.measurement_cov(blob)))
+            # blobs far from the frame's robust body fit pull less (as in the kinematic tracker)
+            inflate = 1.0 + fit_d2.get(lab, 0.0) / max(d.outlier_fit_scale, 1e-9) ** 2
+            w, V = np.linalg.eigh(np.linalg.inv(self.measurement_cov(blob) * inflate))
             S = (V * np.minimum(d.spring_scale * w, d.spring_stiffness_max)) @ V.T
             out.append(PointGoal(int(self.kin.blob_links[b]), self.kin.blob_local[b], blob.mean, S))
         return out
