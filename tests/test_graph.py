@@ -93,3 +93,39 @@ def test_recorded_bag_readable_by_mcap(graph_run):
     assert {"/artrack/body", "/artrack/prediction", "/cameras/cam01/blob_priors"} <= topics
     body_channel = next(cid for cid, c in summary.channels.items() if c.topic == "/artrack/body")
     assert counts[body_channel] == FRAMES
+
+
+@pytest.fixture(scope="module")
+def graph_run_edges(tmp_path_factory, env, small_scene) -> Path:
+    out = tmp_path_factory.mktemp("graph_edges")
+    rec = out / "graph"
+    proc = subprocess.run(
+        [str(NODE_BIN / "artrack"), "launch", "config/graph.yaml", "--set", f"bag={small_scene}",
+         "--set", f"out={rec}", "--set", "edges=true", "--log-dir", str(out / "logs"), "--timeout", "300"],
+        env=env, cwd=REPO, capture_output=True, text=True, timeout=360,
+    )
+    logs = "\n".join(p.read_text(errors="replace")[-3000:] for p in sorted((out / "logs").glob("*.log")))
+    assert proc.returncode == 0, f"launch failed ({proc.returncode}):\n{proc.stderr}\n{logs}"
+    return rec
+
+
+def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small_scene, env, tmp_path):
+    """edge_features nodes (one per camera) measure about the prediction; the skeleton fuses their
+    statistics with the blobs: the same joints as `artrack track --edges`, and different from
+    blobs alone (the edges are really used)."""
+    run_artrack(env, "track", str(small_scene), "--edges", "--out", str(tmp_path / "offline"), "--quiet")
+    run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "blobs"), "--quiet")
+    live = _bodies(graph_run_edges)
+    offline = _bodies(tmp_path / "offline" / "track")
+    blobs_only = _bodies(tmp_path / "blobs" / "track")
+    assert sorted(live) == sorted(offline) and len(offline) == FRAMES
+    tracked = [s for s in offline if not np.isnan(offline[s]).all()]
+    assert len(tracked) >= 15
+    worst = max(float(np.nanmax(np.abs(live[s] - offline[s]))) for s in tracked)
+    assert worst <= 1e-9, f"live graph and offline pipeline with edges differ by {worst:.3g} m"
+    assert max(float(np.nanmax(np.abs(blobs_only[s] - offline[s]))) for s in tracked) > 1e-3
+    with open_bag(graph_run_edges) as reader:
+        counts = {}
+        for topic, _, _ in reader.messages():
+            counts[topic] = counts.get(topic, 0) + 1
+    assert all(counts.get(f"/cameras/{c}/edge_statistics", 0) == FRAMES for c in ("cam01", "cam02", "cam03", "cam04"))

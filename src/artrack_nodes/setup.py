@@ -9,6 +9,7 @@ PACKAGE = "artrack_nodes"
 NODES = [
     "camera_ingest",
     "blob_features",
+    "edge_features",
     "skeleton",
     "feedback_projection",
     "bag_player",

@@ -269,6 +269,61 @@ def body_from_msg(msg: Any) -> BodyEstimate:
     )
 
 
+# ------------------------------------------------------------------ edge statistics
+
+
+def _pose_msg(f: MsgFactory, E: np.ndarray) -> Any:
+    q = Rotation.from_matrix(E[:3, :3]).as_quat()  # x, y, z, w
+    return f("geometry_msgs/msg/Pose", position=_point(f, E[:3, 3]),
+             orientation=f("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]))
+
+
+def edge_stats_msg(f: MsgFactory, stamp_ns: int, camera: str, frame_id: str, link_names: list[str],
+                   stats: Any | None, reference_stamp_ns: int) -> Any:
+    """artrack_msgs/LinkEdgeStatistics from :class:`artrack.edge_fusion.LinkEdgeStatistics`
+    (all body links, in ``link_names`` order; ``stats`` None: an empty message, nothing measured)."""
+    if stats is None:
+        links, ref, info, eta, found = [], [], np.zeros(0), np.zeros(0), np.zeros(0, np.uint32)
+    else:
+        links = list(link_names)
+        ref = [_pose_msg(f, E) for E in np.asarray(stats.reference, dtype=np.float64)]
+        info = _arr(stats.information)
+        eta = _arr(stats.information_vector)
+        found = np.asarray(stats.samples_found, dtype=np.uint32)
+    return f("artrack_msgs/msg/LinkEdgeStatistics", header=header_msg(f, stamp_ns, frame_id), camera_name=camera,
+             reference_stamp=time_msg(f, reference_stamp_ns), links=links, reference=ref, information=info,
+             information_vector=eta, samples_found=found)
+
+
+def edge_stats_from_msg(msg: Any, link_names: list[str]) -> tuple[int, str, Any | None]:
+    """(stamp_ns, camera_name, LinkEdgeStatistics or None when empty) from a LinkEdgeStatistics
+    message for a body with ``link_names``; ValueError names a bad field."""
+    from .edge_fusion import LinkEdgeStatistics
+
+    stamp = ns_from_time(msg.header.stamp)
+    n = len(msg.links)
+    if n == 0:
+        return stamp, msg.camera_name, None
+    if list(msg.links) != list(link_names):
+        raise ValueError(f"field 'links' {list(msg.links)[:3]}... does not list the body's links in order")
+    info = np.array(msg.information, dtype=np.float64)
+    eta = np.array(msg.information_vector, dtype=np.float64)
+    for name, arr, size in (("information", info, 36 * n), ("information_vector", eta, 6 * n),
+                            ("reference", msg.reference, n), ("samples_found", msg.samples_found, n)):
+        if len(arr) != size:
+            raise ValueError(f"field '{name}' has {len(arr)} values, expected {size}")
+    if not (np.all(np.isfinite(info)) and np.all(np.isfinite(eta))):
+        raise ValueError("field 'information' or 'information_vector' is not finite")
+    ref = np.tile(np.eye(4), (n, 1, 1))
+    for i, pose in enumerate(msg.reference):
+        o = pose.orientation
+        ref[i, :3, :3] = Rotation.from_quat([o.x, o.y, o.z, o.w]).as_matrix()
+        ref[i, :3, 3] = _xyz(pose.position)
+    stats = LinkEdgeStatistics(ref, info.reshape(n, 6, 6), eta.reshape(n, 6),
+                               np.array(msg.samples_found, dtype=np.int64), (msg.camera_name,))
+    return stamp, msg.camera_name, stats
+
+
 # ------------------------------------------------------------------ cameras
 
 

@@ -37,6 +37,8 @@ from .messages import (
     body_msg,
     camera_from_msgs,
     camera_info_msg,
+    edge_stats_from_msg,
+    edge_stats_msg,
     extrinsics_msg,
     prior_array_msg,
     priors_from_msg,
@@ -163,6 +165,11 @@ class WireRoundTrip:
     def body(self, body: BodyEstimate) -> BodyEstimate:
         return body_from_msg(body_msg(self.f, body))
 
+    def edges(self, stamp_ns: int, camera: str, link_names: list[str], stats: LinkEdgeStatistics | None,
+              reference_stamp_ns: int) -> LinkEdgeStatistics | None:
+        msg = edge_stats_msg(self.f, stamp_ns, camera, camera, link_names, stats, reference_stamp_ns)
+        return edge_stats_from_msg(msg, link_names)[2]
+
     def camera(self, camera: Camera) -> Camera:
         """As the nodes see it: published by bag_player / camera_ingest, rebuilt by subscribers."""
         return camera_from_msgs(camera.name, camera_info_msg(self.f, camera, 0), extrinsics_msg(self.f, camera, 0))
@@ -180,7 +187,9 @@ class ClosedLoopPipeline:
         self.projection = ProjectionStage(body, self.cameras)
         self.edge_stages = ({c.name: EdgeStage(c, body, self.config.edge) for c in self.cameras}
                             if self.config.edges else {})
+        self.link_names = list(body.link_names)
         self.reference: np.ndarray | None = None  # world_from_link of the last prediction (edges)
+        self.reference_stamp = 0
         self.priors: dict[str, list[Prior2D]] = {}
         self.frames = 0
 
@@ -197,14 +206,17 @@ class ClosedLoopPipeline:
             used[name] = priors if stage.used_priors else None
         t1 = time.perf_counter()
         edges = None
-        if self.edge_stages and self.reference is not None:
-            edges = combine([self.edge_stages[name].step(images[name], self.reference)
-                             for name in sorted(images) if name in self.edge_stages])
+        if self.edge_stages:
+            edges = combine([self.wire.edges(
+                stamp_ns, name, self.link_names,
+                self.edge_stages[name].step(images[name], self.reference) if self.reference is not None else None,
+                self.reference_stamp) for name in sorted(images) if name in self.edge_stages])
         t_edges = time.perf_counter()
         estimate, prediction = self.skeleton.step(stamp_ns, blobs, edges)
         t2 = time.perf_counter()
         wired = self.wire.body(prediction)
         self.reference = link_poses(wired) if self.edge_stages else None
+        self.reference_stamp = prediction.stamp_ns
         projected = self.projection.step(wired)
         self.priors = {name: self.wire.priors(name, p, prediction.stamp_ns) for name, p in projected.items()}
         t3 = time.perf_counter()

@@ -20,7 +20,8 @@ from .common import RESULT_QOS, declare_all, run_node
 
 PARAMS = [
     ("out", "out/recording", "output bag (rosbag2 folder; storage mcap)"),
-    ("topics", ["/artrack/*", "/cameras/*/blobs", "/cameras/*/blob_priors"], "topic patterns (fnmatch) to record"),
+    ("topics", ["/artrack/*", "/cameras/*/blobs", "/cameras/*/blob_priors", "/cameras/*/edge_statistics"],
+     "topic patterns (fnmatch) to record"),
 ]
 
 

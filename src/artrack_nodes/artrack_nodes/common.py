@@ -28,12 +28,17 @@ from artrack.messages import MsgFactory, rclpy_factory
 
 #: Images in free-running mode: best effort, keep last 5 (REP 2003 sensor data).
 IMAGE_QOS_SENSOR = qos_profile_sensor_data
-#: Images in lockstep mode: every frame must arrive.
+#: Images in lockstep mode (bag replay by bag_player): every frame must arrive, also at a
+#: reader whose discovery finished just after the frame was sent (transient local, last 10).
 IMAGE_QOS_RELIABLE = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE
+    history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
-#: Results (blobs, priors, bodies): reliable, depth 10.
-RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+#: Results (blobs, priors, edge statistics, bodies): reliable, the last 10 kept for late-matched
+#: readers (a process graph on a busy machine matches its endpoints over seconds; volatile
+#: readers elsewhere remain compatible).
+RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: Latched per-camera data (camera_info, extrinsics): late joiners get the last one.
 LATCHED_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,

@@ -2,10 +2,12 @@
 virtual-work constraint solver; or the triangulate-and-fit baseline).
 
 Subscribes every camera's /cameras/<cam>/blobs (plus camera_info and
-extrinsics), and once all cameras have reported a frame (or, free-running,
-after sync_timeout_s) publishes /artrack/body (the estimate at that frame) and
-/artrack/prediction (the body predicted for the next frame, which
-feedback_projection turns into 2-D priors).
+extrinsics) and, with ``edges`` on, /cameras/<cam>/edge_statistics (edge_features
+nodes; fused as soft constraints on the links, ALGORITHMS.md §2 "Fusion"). Once all
+cameras have reported a frame (or, free-running, after sync_timeout_s) it publishes
+/artrack/body (the estimate at that frame) and /artrack/prediction (the body predicted
+for the next frame, which feedback_projection turns into 2-D priors and edge_features
+measures about).
 """
 
 from __future__ import annotations
@@ -16,8 +18,9 @@ import time
 from rclpy.node import Node
 
 from artrack.body_model import load_body_model
+from artrack.edge_fusion import combine
 from artrack.errors import ArtrackError
-from artrack.messages import blobs_from_msg, body_msg
+from artrack.messages import blobs_from_msg, body_msg, edge_stats_from_msg
 from artrack.pipeline import SkeletonStage, load_pipeline_config
 
 from .common import (
@@ -41,6 +44,7 @@ PARAMS = [
     ("world_frame", "world", "frame_id of the published bodies"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
     ("skeleton_config", "", "estimator tunables YAML (empty: config/skeleton.yaml)"),
+    ("edges", False, "also wait for and fuse every camera's edge statistics (edge_features nodes)"),
 ]
 
 
@@ -55,7 +59,9 @@ class SkeletonNode(Node):
         self.config = load_pipeline_config(estimator=p["estimator"], fps=float(p["fps"]),
                                            skeleton_config=p["skeleton_config"])
         self.stage: SkeletonStage | None = None
+        self.edges = bool(p["edges"])
         self.pending: dict[int, dict] = {}
+        self.pending_edges: dict[int, dict] = {}
         self.first_seen: dict[int, float] = {}
         self.last_done = -1
         f = msgs()
@@ -66,8 +72,12 @@ class SkeletonNode(Node):
         for n in self.names:
             self.create_subscription(f.cls("artrack_msgs/msg/Blob2DArray"), camera_topic(n, "blobs"),
                                      self.on_blobs, RESULT_QOS)
+            if self.edges:
+                self.create_subscription(f.cls("artrack_msgs/msg/LinkEdgeStatistics"),
+                                         camera_topic(n, "edge_statistics"), self.on_edges, RESULT_QOS)
         self.create_timer(0.02, self.flush)
-        self.get_logger().info(f"skeleton ({p['estimator']}) over {self.names}, lockstep={self.lockstep}")
+        self.get_logger().info(f"skeleton ({p['estimator']}{', edges' if self.edges else ''}) over {self.names}, "
+                               f"lockstep={self.lockstep}")
 
     def on_cameras(self, cameras) -> None:
         self.stage = SkeletonStage(self.body, cameras, self.config)
@@ -90,25 +100,50 @@ class SkeletonNode(Node):
         self.first_seen.setdefault(stamp, time.monotonic())
         self.flush()
 
+    def on_edges(self, msg) -> None:
+        try:
+            stamp, cam, stats = edge_stats_from_msg(msg, self.body.link_names)
+        except (ValueError, AttributeError) as exc:
+            self.get_logger().error(f"dropped bad LinkEdgeStatistics: {exc}")
+            return
+        if cam not in self.names:
+            self.get_logger().error(f"dropped edge statistics of unknown camera '{cam}' (field camera_name)")
+            return
+        if stamp <= self.last_done:
+            self.get_logger().warning(f"dropped late edge statistics of {cam} for frame {stamp}")
+            return
+        self.pending_edges.setdefault(stamp, {})[cam] = stats
+        self.first_seen.setdefault(stamp, time.monotonic())
+        self.pending.setdefault(stamp, {})
+        self.flush()
+
     def flush(self) -> None:
         if self.stage is None:
             return
         now = time.monotonic()
         for stamp in sorted(self.pending):
             got = self.pending[stamp]
-            complete = len(got) == len(self.names)
-            newer_complete = any(len(v) == len(self.names) for s, v in self.pending.items() if s > stamp)
+            complete = self._complete(stamp)
+            newer_complete = any(self._complete(s) for s in self.pending if s > stamp)
             timed_out = now - self.first_seen[stamp] > float(self.p["sync_timeout_s"])
             if not complete and (self.lockstep or not (timed_out or newer_complete)):
                 return
             del self.pending[stamp]
             del self.first_seen[stamp]
-            self.process(stamp, got)
+            edges = self.pending_edges.pop(stamp, {})
+            if not got:  # edge statistics alone (their blobs were lost): nothing to estimate from
+                continue
+            self.process(stamp, got, combine([edges[c] for c in sorted(edges)]) if self.edges else None)
 
-    def process(self, stamp: int, blobs_by_camera: dict) -> None:
+    def _complete(self, stamp: int) -> bool:
+        """Every camera's blobs (and, with edges, edge statistics) of this frame are in."""
+        blobs_in = len(self.pending.get(stamp, {})) == len(self.names)
+        return blobs_in and (not self.edges or len(self.pending_edges.get(stamp, {})) == len(self.names))
+
+    def process(self, stamp: int, blobs_by_camera: dict, edges=None) -> None:
         self.last_done = stamp
         try:
-            estimate, prediction = self.stage.step(stamp, blobs_by_camera)
+            estimate, prediction = self.stage.step(stamp, blobs_by_camera, edges)
         except ArtrackError as exc:
             self.get_logger().error(f"frame {stamp}: {exc}")
             return

@@ -1,0 +1,143 @@
+"""edge_features: one camera's edge measurements about the predicted body (ALGORITHMS.md §2).
+
+Subscribes /cameras/<cam>/image_raw, the camera's camera_info and extrinsics, and
+/artrack/prediction. For each image it measures the body's contour edges about the
+prediction for that frame (contour samples of the quadric body, 1-D search along the image
+normals with edge polarity, robust per-link motion statistics, eqs. 7-10) and publishes
+/cameras/<cam>/edge_statistics (artrack_msgs/LinkEdgeStatistics, information form; empty when
+there is no prediction with links), which the skeleton node fuses with the blobs ("Fusion").
+In lockstep mode every image after the first waits for the prediction of its frame.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections import deque
+
+from rclpy.node import Node
+
+from artrack.body_model import load_body_model
+from artrack.config import config_path
+from artrack.edge_fusion import EdgeStage
+from artrack.edge_tracker import EdgeTrackerConfig
+from artrack.errors import ArtrackError
+from artrack.messages import bgr_from_image_msg, body_from_msg, edge_stats_msg, ns_from_time
+from artrack.pipeline import link_poses
+
+from .common import (
+    IMAGE_QOS_RELIABLE,
+    IMAGE_QOS_SENSOR,
+    PREDICTION_TOPIC,
+    RESULT_QOS,
+    CameraRigListener,
+    camera_topic,
+    declare_all,
+    msgs,
+    run_node,
+)
+
+PARAMS = [
+    ("camera_name", "cam01", "camera this node serves (topic /cameras/<camera_name>/...)"),
+    ("lockstep", False, "wait for the prediction of each frame (reproducible replay); reliable image QoS"),
+    ("fps", 30.0, "nominal frame rate, Hz (prediction-to-frame matching tolerance is half a frame)"),
+    ("prediction_timeout_s", 10.0, "lockstep: give up waiting for a prediction after this long, s"),
+    ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
+    ("edge_config", "", "edge tracker tunables YAML (empty: config/edge_features.yaml)"),
+]
+
+
+class EdgeFeaturesNode(Node):
+    def __init__(self):
+        super().__init__("edge_features")
+        p = declare_all(self, PARAMS)
+        self.camera = p["camera_name"]
+        self.lockstep = bool(p["lockstep"])
+        self.tol_ns = int(0.5e9 / float(p["fps"]))
+        self.timeout_s = float(p["prediction_timeout_s"])
+        self.body = load_body_model(p["body_model"] or None)
+        self.edge_config = EdgeTrackerConfig.from_yaml(config_path(p["edge_config"], "edge_features.yaml"))
+        self.stage: EdgeStage | None = None
+        f = msgs()
+        self.pub = self.create_publisher(f.cls("artrack_msgs/msg/LinkEdgeStatistics"),
+                                         camera_topic(self.camera, "edge_statistics"), RESULT_QOS)
+        self.rig = CameraRigListener(self, [self.camera], self.on_camera)
+        self.create_subscription(f.cls("sensor_msgs/msg/Image"), camera_topic(self.camera, "image_raw"),
+                                 self.on_image, IMAGE_QOS_RELIABLE if self.lockstep else IMAGE_QOS_SENSOR)
+        self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), PREDICTION_TOPIC, self.on_prediction,
+                                 RESULT_QOS)
+        self.predictions: dict[int, object] = {}  # predicted stamp -> (L, 4, 4) link poses or None
+        self.queue: deque = deque()
+        self.frames = 0
+        self.create_timer(0.1, self.process_queue)
+        self.get_logger().info(f"edge_features for {self.camera} (lockstep={self.lockstep})")
+
+    def on_camera(self, cameras) -> None:
+        self.stage = EdgeStage(cameras[0], self.body, self.edge_config)
+        self.process_queue()
+
+    def on_image(self, msg) -> None:
+        try:
+            image = bgr_from_image_msg(msg, camera_topic(self.camera, "image_raw"))
+        except ValueError as exc:
+            self.get_logger().error(f"dropped bad image: {exc}")
+            return
+        self.queue.append((ns_from_time(msg.header.stamp), image, time.monotonic()))
+        self.process_queue()
+
+    def on_prediction(self, msg) -> None:
+        try:
+            body = body_from_msg(msg)
+            poses = link_poses(body)
+            if poses is not None and len(poses) != len(self.body.links):
+                raise ValueError(f"field 'links' has {len(poses)} links, the body model {len(self.body.links)}")
+        except (ValueError, AttributeError) as exc:
+            self.get_logger().error(f"dropped bad prediction on {PREDICTION_TOPIC}: {exc}")
+            return
+        self.predictions[body.stamp_ns] = poses
+        for old in sorted(self.predictions)[:-8]:
+            del self.predictions[old]
+        self.process_queue()
+
+    def _prediction_for(self, stamp: int) -> tuple[int, object] | None:
+        """Lockstep: the prediction of this frame; free-running: the newest not after it."""
+        if self.lockstep:
+            for s, poses in self.predictions.items():
+                if abs(s - stamp) <= self.tol_ns:
+                    return s, poses
+            return None
+        older = [s for s in self.predictions if s <= stamp + self.tol_ns]
+        return (max(older), self.predictions[max(older)]) if older else None
+
+    def process_queue(self) -> None:
+        if self.stage is None:  # the camera's calibration has not arrived yet
+            return
+        while self.queue:
+            stamp, image, arrived = self.queue[0]
+            found = self._prediction_for(stamp)
+            if self.lockstep and self.frames > 0 and found is None:
+                if time.monotonic() - arrived < self.timeout_s:
+                    return
+                self.get_logger().warning(f"no prediction for frame {stamp} after {self.timeout_s}s; going on")
+            self.queue.popleft()
+            if not self.lockstep:  # free-running: only the newest image matters
+                while self.queue:
+                    stamp, image, arrived = self.queue.popleft()
+                found = self._prediction_for(stamp)
+            ref_stamp, reference = found if (found is not None and self.frames > 0) else (0, None)
+            try:
+                stats = self.stage.step(image, reference) if reference is not None else None
+            except (ArtrackError, ValueError) as exc:
+                self.get_logger().error(f"frame {stamp}: {exc}")
+                continue
+            self.frames += 1
+            self.pub.publish(edge_stats_msg(msgs(), stamp, self.camera, f"{self.camera}_optical_frame",
+                                            self.body.link_names, stats, ref_stamp))
+
+
+def main(args=None) -> None:
+    sys.exit(run_node(EdgeFeaturesNode, __doc__, PARAMS, args))
+
+
+if __name__ == "__main__":
+    main()
