@@ -171,3 +171,30 @@ def test_edges_alone_hold_a_rendered_walk(scene):
     moved = joint_error_mm(body, body.forward_kinematics(theta0), body.forward_kinematics(theta))
     assert moved > 200.0  # the body really walked away from the first pose
     assert np.mean(errors) < 30.0 and max(errors) < 45.0, np.round(errors)
+
+
+def test_pixel_parameters_scale_with_resolution():
+    """At 640x480 (twice the reference width) spacing, search range, blur and polarity side are doubled and
+    distances measured in reference pixels: the 4 views follow 36 frames (1.2 s) of the default walk as at
+    320x240. With pixel lengths unscaled (rims, shading rings, blur and motions twice as wide) the track
+    was lost after ~1.1 s (bench/edge_tracking.py --sizes 640x480)."""
+    body = load_body_model()
+    cams = default_rig(4, 640, 480)
+    renderer = Renderer(body, cams, 3)
+    names = [c.name for c in cams]
+    tracker = EdgeTracker(body, cams)
+    assert tracker.scale(cams[0]) == 2.0
+    assert EdgeTracker(body, cams, EdgeTrackerConfig(reference_width_px=0.0)).scale(cams[0]) == 1.0
+    theta0 = pose_at("default", 0.0, body)
+    E = body.forward_kinematics(theta0)
+    tracker.learn_appearance(dict(zip(names, renderer.render(theta0, noise_sigma=2.0, frame_index=0))), E)
+    assert 0.0 < tracker.outline_offset_px < 1.5  # reference pixels, as at 320x240
+    errors = []
+    for k in range(1, 37):
+        theta = pose_at("default", k / 30.0, body)
+        E = tracker.step(dict(zip(names, renderer.render(theta, noise_sigma=2.0, frame_index=k))), E)[0]
+        errors.append(joint_error_mm(body, E, body.forward_kinematics(theta)))
+        if k == 1:  # image-pixel distances at the (nearly) right pose: about the reference's, doubled
+            for name, m in tracker.last_measurements.items():
+                assert m.found.mean() > 0.4 and np.median(np.abs(m.distance[m.found])) < 2.4, name
+    assert np.mean(errors) < 30.0 and max(errors) < 45.0, np.round(errors)

@@ -27,9 +27,9 @@ import numpy as np
 
 from artrack.body_model import BodyModel, Shape
 from artrack.lie import inverse_se3
-from artrack.quadrics import ClippedQuadric, cylinder, ellipsoid, sample_contour, slab, sphere, transform_quadric
+from artrack.quadrics import ClippedQuadric, cylinder, ellipsoid, sample_contours, slab, sphere, transform_quadric
 
-__all__ = ["BodyQuadric", "BodySamples", "body_quadrics", "sample_body", "shape_quadrics"]
+__all__ = ["BodyQuadric", "BodySamples", "body_quadrics", "sample_body", "sample_body_views", "shape_quadrics"]
 
 
 @dataclass(frozen=True)
@@ -116,7 +116,7 @@ def _occluded(points: np.ndarray, own: np.ndarray, Q_cam: np.ndarray, clip_cam: 
     depth = points[:, 2]
     d = points / depth[:, None]  # rays with z = 1, so ray depth = z
     A, b, c = Q_cam[:, :3, :3], Q_cam[:, :3, 3], Q_cam[:, 3, 3]
-    alpha = np.einsum("mi,pij,mj->mp", d, A, d)
+    alpha = (d[:, :, None] * d[:, None, :]).reshape(-1, 9) @ A.reshape(-1, 9).T  # d^T A_p d (M, P)
     beta = d @ b.T
     disc = beta**2 - alpha * c[None, :]
     real = (disc >= 0) & (np.abs(alpha) > 1e-15)
@@ -131,7 +131,8 @@ def _occluded(points: np.ndarray, own: np.ndarray, Q_cam: np.ndarray, clip_cam: 
             continue
         m, p = np.nonzero(ok)
         X = np.c_[d[m] * lam[m, p][:, None], np.ones(len(m))]
-        inside = np.einsum("ki,kij,kj->k", X, clip_cam[p], X) <= 0.0
+        inside = np.einsum("ki,ki->k", (X[:, :, None] * X[:, None, :]).reshape(-1, 16),
+                           clip_cam.reshape(-1, 16)[p]) <= 0.0
         hidden[m[inside]] = True
     return hidden
 
@@ -153,35 +154,64 @@ def sample_body(
     camera (``cam_from_world @ world_from_link``); K (3, 3); image_size (width, height) px;
     spacing_px: image spacing of samples along each conic. occlusion: drop samples hidden by any
     other primitive of the body. links: only sample primitives of these links (all still occlude).
+    Equal to :func:`artrack.quadrics.sample_contour` per primitive followed by the occlusion test;
+    computed for all primitives at once (:func:`sample_body_views`).
+    """
+    return sample_body_views(quadrics, np.asarray(cam_from_link, dtype=float)[None], np.asarray(K, float)[None],
+                             [image_size], spacing_px, margin_px=margin_px, occlusion=occlusion, links=links)[0]
+
+
+def _prims_in_cameras(quadrics: Sequence[BodyQuadric], cam_from_link: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every primitive in every camera, ``Q' = E^-T Q E^-1`` (eq. 2): surfaces and clips (V, P, 4, 4);
+    no clip = always inside (zeros)."""
+    Ti = inverse_se3(cam_from_link)[:, [bq.link for bq in quadrics]]  # (V, P, 4, 4)
+    TiT = np.swapaxes(Ti, -1, -2)
+    surf = np.stack([bq.quadric.surface for bq in quadrics])
+    clip = np.stack([np.zeros((4, 4)) if bq.quadric.clip is None else bq.quadric.clip for bq in quadrics])
+    return TiT @ surf @ Ti, TiT @ clip @ Ti
+
+
+def sample_body_views(
+    quadrics: Sequence[BodyQuadric],
+    cam_from_link: np.ndarray,
+    K: np.ndarray,
+    image_sizes: Sequence[tuple[int, int]],
+    spacing_px: float | Sequence[float] = 5.0,
+    *,
+    margin_px: float = 0.0,
+    occlusion: bool = True,
+    links: Sequence[int] | None = None,
+) -> list[BodySamples]:
+    """:func:`sample_body` for several cameras in one batched pass (ALGORITHMS.md §2 "Model").
+
+    cam_from_link: (V, L, 4, 4), one set of link poses per camera; K: (V, 3, 3); image_sizes: V
+    (width, height); spacing_px: one for all cameras or (V,) one per camera. All primitives of all
+    cameras are sampled together (:func:`artrack.quadrics.sample_contours`), then each camera's
+    samples pass the occlusion test.
+    Returns one :class:`BodySamples` per camera.
     """
     E = np.asarray(cam_from_link, dtype=float)
-    n = len(quadrics)
-    Einv = inverse_se3(E)
-    # every primitive in camera coordinates, Q' = E^-T Q E^-1 (eq. 2); no clip = always inside (zeros)
-    Q_cam = np.empty((n, 4, 4))
-    clip_cam = np.zeros((n, 4, 4))
-    for k, bq in enumerate(quadrics):
-        Ti = Einv[bq.link]
-        Q_cam[k] = Ti.T @ bq.quadric.surface @ Ti
-        if bq.quadric.clip is not None:
-            clip_cam[k] = Ti.T @ bq.quadric.clip @ Ti
-    wanted = None if links is None else set(int(i) for i in links)
-    parts = []
-    for k, bq in enumerate(quadrics):
-        if wanted is not None and bq.link not in wanted:
-            continue
-        s = sample_contour(bq.quadric, E[bq.link], K, image_size, spacing_px, margin_px=margin_px)
-        if len(s):
-            parts.append((s, bq.link, k))
-    if not parts:
-        z2, z3, zi = np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, dtype=int)
-        return BodySamples(z2, z2.copy(), z3, zi, zi.copy())
-    uv = np.vstack([s.uv for s, _, _ in parts])
-    nrm = np.vstack([s.normals for s, _, _ in parts])
-    P = np.vstack([s.points_cam for s, _, _ in parts])
-    link = np.concatenate([np.full(len(s), li) for s, li, _ in parts])
-    prim = np.concatenate([np.full(len(s), k) for s, _, k in parts])
-    if occlusion and n > 1:
-        keep = ~_occluded(P, prim, Q_cam, clip_cam)
-        uv, nrm, P, link, prim = uv[keep], nrm[keep], P[keep], link[keep], prim[keep]
-    return BodySamples(uv, nrm, P, link, prim)
+    K = np.asarray(K, dtype=float)
+    V, n = len(E), len(quadrics)
+    Q_cam, clip_cam = _prims_in_cameras(quadrics, E)
+    sel = np.ones(n, dtype=bool) if links is None else np.isin([bq.link for bq in quadrics], list(links))
+    prim_ids = np.flatnonzero(sel)
+    boxes = np.array([(-margin_px, -margin_px, w - 1 + margin_px, h - 1 + margin_px) for w, h in image_sizes],
+                     dtype=float)
+    cam_of = np.repeat(np.arange(V), len(prim_ids))
+    uv, nrm, P, owner = sample_contours(Q_cam[:, prim_ids].reshape(-1, 4, 4), clip_cam[:, prim_ids].reshape(-1, 4, 4),
+                                        K[cam_of], boxes[cam_of],
+                                        np.broadcast_to(np.asarray(spacing_px, dtype=float), (V,))[cam_of])
+    cam = owner // max(len(prim_ids), 1)
+    prim = prim_ids[owner % max(len(prim_ids), 1)] if len(prim_ids) else owner
+    link_of = np.array([bq.link for bq in quadrics], dtype=int)
+    bounds = np.searchsorted(cam, np.arange(V + 1))
+    out = []
+    for v in range(V):
+        a, b = bounds[v], bounds[v + 1]
+        u, nr, p, pr = uv[a:b], nrm[a:b], P[a:b], prim[a:b]
+        if occlusion and n > 1 and len(u):
+            keep = ~_occluded(p, pr, Q_cam[v], clip_cam[v])
+            u, nr, p, pr = u[keep], nr[keep], p[keep], pr[keep]
+        out.append(BodySamples(u, nr, p, link_of[pr], pr))
+    return out

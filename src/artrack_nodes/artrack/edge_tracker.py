@@ -4,7 +4,8 @@ One :meth:`EdgeTracker.step` per video frame, starting from predicted link poses
 (world_from_link), repeated ``iterations`` times:
 
 1. *sampling* — contour samples of every link's clipped quadrics in every camera at the
-   current pose, visible ones only (:func:`artrack.body_quadrics.sample_body`: conic
+   current pose, visible ones only, all cameras in one batched pass
+   (:func:`artrack.body_quadrics.sample_body_views`: conic
    ``C = A c - b b^T``, clip and occlusion tests);
 2. *search* — from each sample a 1-D search along the image normal for the nearest
    (or strongest, see config) edge of the image gradient, grey or colour
@@ -30,6 +31,12 @@ One :meth:`EdgeTracker.step` per video frame, starting from predicted link poses
    model), ``E_i <- E_i exp(xi_i)`` and exact coercion of the joints
    (:func:`artrack.propagation.articulated_update`).
 
+Resolution: the pixel lengths of the config (``spacing_px``, ``search_px``, ``polarity_side_px``,
+``blur_sigma``) are given for an image ``reference_width_px`` wide and multiplied by
+``s = width / reference_width_px`` in each camera (outline rims, shading rings, edge blur and per-frame
+motions are ``s`` times wider there); edge distances and Jacobian rows are divided by ``s`` (reference
+pixels), so ``c_robust``, the damping and the learnt outline offset keep their meaning at every resolution.
+
 Lens distortion: each image is first resampled to the pinhole camera ``K`` (``cv2.remap``
 with maps built once per camera), since quadrics image to conics only without distortion.
 Poses are world_from_link (4, 4) as from :meth:`artrack.body_model.BodyModel.forward_kinematics`;
@@ -48,7 +55,7 @@ import cv2
 import numpy as np
 
 from artrack.body_model import BodyModel
-from artrack.body_quadrics import BodySamples, body_quadrics, sample_body
+from artrack.body_quadrics import BodySamples, body_quadrics, sample_body_views
 from artrack.cameras import Camera
 from artrack.edges import ColourCone, fit_colour_cone, motion_statistics, normal_search, robust_weights
 from artrack.lie import inverse_se3, skew
@@ -82,6 +89,7 @@ class EdgeTrackerConfig:
     polarity_side_px: float = 1.5
     appearance_margin: float = 10.0
     learn_offset: bool = True
+    reference_width_px: float = 320.0
     eps: float = 1e-9
 
     def __post_init__(self) -> None:
@@ -93,6 +101,8 @@ class EdgeTrackerConfig:
             raise ValueError("EdgeTrackerConfig: need iterations >= 1 and robust_iterations >= 0")
         if self.polarity_side_px <= 0 or self.appearance_margin < 0:
             raise ValueError("EdgeTrackerConfig: need polarity_side_px > 0 and appearance_margin >= 0")
+        if self.reference_width_px < 0:
+            raise ValueError("EdgeTrackerConfig: need reference_width_px >= 0 (0: no resolution scaling)")
         if self.select not in ("nearest", "strongest"):
             raise ValueError(f"EdgeTrackerConfig: select must be 'nearest' or 'strongest', got {self.select!r}")
 
@@ -132,7 +142,8 @@ class CameraMeasurements:
     """The last iteration's edge measurements in one camera (pinhole pixels of ``K``).
 
     samples: the visible contour samples; distance (M,) signed px (NaN where not found);
-    found (M,) bool; weight (M,) final robust weight ``c/(c + |r|)`` (0 where not found).
+    found (M,) bool; weight (M,) final robust weight ``c/(c + |r|)`` (residual ``r`` in reference pixels,
+    see ``reference_width_px``; 0 where not found).
     """
 
     samples: BodySamples
@@ -214,7 +225,7 @@ class EdgeTracker:
             img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         img = self._undistort(cam, img).astype(np.float32)
         if self.config.blur_sigma > 0:
-            img = cv2.GaussianBlur(img, (0, 0), self.config.blur_sigma)
+            img = cv2.GaussianBlur(img, (0, 0), self.config.blur_sigma * self.scale(cam))
         gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
         gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
         return gx, gy, img
@@ -234,13 +245,10 @@ class EdgeTracker:
         E = np.asarray(link_poses_world, dtype=float)
         cols: list[np.ndarray] = []
         prims: list[np.ndarray] = []
-        for cam in self.cameras:
-            if cam.name not in images_by_camera:
-                continue
+        cams = [c for c in self.cameras if c.name in images_by_camera]
+        for cam, s in zip(cams, self._sample(cams, E)[1]):
             img = self.prepare(cam, images_by_camera[cam.name])[2]
-            s = sample_body(self.quadrics, cam.cam_from_world @ E, cam.K, (cam.width, cam.height),
-                            cfg.spacing_px, occlusion=cfg.occlusion)
-            for d in (cfg.polarity_side_px, cfg.polarity_side_px + 1.0):
+            for d in (cfg.polarity_side_px * self.scale(cam), (cfg.polarity_side_px + 1.0) * self.scale(cam)):
                 p = (s.uv - d * s.normals).astype(np.float32)
                 c = cv2.remap(img, p[:, 0:1], p[:, 1:2], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                 inside = (p[:, 0] >= 0) & (p[:, 0] <= cam.width - 1) & (p[:, 1] >= 0) & (p[:, 1] <= cam.height - 1)
@@ -264,7 +272,8 @@ class EdgeTracker:
             grads = {c.name: self.prepare(c, images_by_camera[c.name]) for c in self.cameras
                      if c.name in images_by_camera}
             self.measure(grads, E, dict.fromkeys(STAGES, 0.0))
-            d = np.concatenate([m.distance[m.found] for m in self.last_measurements.values()] or [np.zeros(0)])
+            d = np.concatenate([m.distance[m.found] / self.scale(self._camera(name))
+                                for name, m in self.last_measurements.items()] or [np.zeros(0)])
             if len(d) >= 8:
                 lim = 0.25 * cfg.search_px
                 self.outline_offset_px = float(np.clip(np.median(d), -lim, lim))
@@ -283,6 +292,21 @@ class EdgeTracker:
         return has[prim], u[prim], lo[prim], hi[prim], pm[prim]
 
     # ------------------------------------------------------------------ one iteration
+    def _sample(self, cams: Sequence[Camera], world_from_link: np.ndarray) -> tuple[np.ndarray, list[BodySamples]]:
+        """cam_from_link (V, L, 4, 4) and the visible contour samples of every camera of ``cams``, in one pass."""
+        Es = np.array([c.cam_from_world @ world_from_link for c in cams]).reshape(-1, self.n_links, 4, 4)
+        Ks = np.array([c.K for c in cams]).reshape(-1, 3, 3)
+        spacing = [self.config.spacing_px * self.scale(c) for c in cams]
+        return Es, sample_body_views(self.quadrics, Es, Ks, [(c.width, c.height) for c in cams],
+                                     spacing, occlusion=self.config.occlusion)
+
+    def scale(self, cam: Camera) -> float:
+        """Pixel scale ``s = width / reference_width_px`` of ``cam`` (1 when ``reference_width_px`` is 0): the
+        pixel lengths of the config (spacing, search range, polarity side, blur) are multiplied by ``s`` in
+        this camera, and its edge distances and Jacobian rows divided by ``s`` (reference pixels)."""
+        r = self.config.reference_width_px
+        return cam.width / r if r > 0 else 1.0
+
     def measure(self, grads: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray]], world_from_link: np.ndarray,
                 timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per-link statistics (xi_hat (L, 6), C (L, 6, 6), link frames; measured (L,) bool) at
@@ -292,27 +316,25 @@ class EdgeTracker:
         dists: list[np.ndarray] = []
         owners: list[np.ndarray] = []
         self.last_measurements = {}
-        for cam in self.cameras:
-            if cam.name not in grads:
-                continue
-            t0 = time.perf_counter()
-            E = cam.cam_from_world @ world_from_link
-            s = sample_body(self.quadrics, E, cam.K, (cam.width, cam.height), cfg.spacing_px,
-                            occlusion=cfg.occlusion)
+        t0 = time.perf_counter()
+        cams = [c for c in self.cameras if c.name in grads]
+        Es, samples = self._sample(cams, world_from_link)
+        timings["sampling"] += (time.perf_counter() - t0) * 1e3
+        for cam, E, s in zip(cams, Es, samples):
             t1 = time.perf_counter()
             g = grads[cam.name]
+            sc = self.scale(cam)
             model = self._colour_model(s.prim, 1 if g[2].ndim == 2 else g[2].shape[2])
-            d, found = normal_search(None, s.uv, s.normals, cfg.search_px, threshold=cfg.threshold,
+            d, found = normal_search(None, s.uv, s.normals, cfg.search_px * sc, threshold=cfg.threshold,
                                      gradients=g[:2], select=cfg.select, colour_image=g[2], colour_model=model,
-                                     side_px=cfg.polarity_side_px)
-            d = d - self.outline_offset_px
+                                     side_px=cfg.polarity_side_px * sc)
+            d = d / sc - self.outline_offset_px  # reference pixels
             t2 = time.perf_counter()
-            J = _jacobian_batch(s.points_cam, s.normals, cam.K, E[s.link])
+            J = _jacobian_batch(s.points_cam, s.normals, cam.K, E[s.link]) / sc
             rows.append(J)
             dists.append(d)
             owners.append(s.link)
-            self.last_measurements[cam.name] = CameraMeasurements(s, d, found, np.zeros(len(d)))
-            timings["sampling"] += (t1 - t0) * 1e3
+            self.last_measurements[cam.name] = CameraMeasurements(s, d * sc, found, np.zeros(len(d)))
             timings["search"] += (t2 - t1) * 1e3
             timings["statistics"] += (time.perf_counter() - t2) * 1e3
         t0 = time.perf_counter()
@@ -331,11 +353,8 @@ class EdgeTracker:
                     continue
                 xi_hat[i], C[i] = motion_statistics(J[idx], m[idx], cfg.c_robust, cfg.robust_iterations)
                 measured[i] = True
-            for name, meas in self.last_measurements.items():  # final weights, for publishing
-                r = meas.distance - np.einsum("mj,mj->m", _jacobian_batch(
-                    meas.samples.points_cam, meas.samples.normals, self._camera(name).K,
-                    self._camera(name).cam_from_world @ world_from_link[meas.samples.link]),
-                    xi_hat[meas.samples.link])
+            for meas, Jc, dc in zip(self.last_measurements.values(), rows, dists):  # final weights, for publishing
+                r = dc - np.einsum("mj,mj->m", Jc, xi_hat[meas.samples.link])
                 meas.weight = np.where(meas.found, robust_weights(np.nan_to_num(r), cfg.c_robust), 0.0)
         D = np.diag([cfg.damping_translation] * 3 + [cfg.damping_rotation] * 3)
         eta = np.einsum("nij,nj->ni", C, xi_hat)

@@ -45,6 +45,7 @@ __all__ = [
     "quadric_value",
     "ray_quadric_depths",
     "sample_contour",
+    "sample_contours",
     "slab",
     "sphere",
     "tangent_points",
@@ -459,3 +460,305 @@ def sample_contour(
     if not keep.any():
         return empty
     return ContourSamples(uv[keep], normals[keep], P[keep])
+
+
+# --------------------------------------------------------------------------- batched sampling
+
+
+def pixel_conics(Q_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixel image conics (n, 3, 3) of quadrics ``Q_cam`` (n, 4, 4) already in camera coordinates.
+
+    :func:`image_conic` batched: ``C = A c - b b^T`` (paper eq. 4), ``K^-T C K^-1`` with ``K`` (n, 3, 3)
+    the intrinsics of each quadric's camera, symmetrised.
+    """
+    A, b, c = Q_cam[:, :3, :3], Q_cam[:, :3, 3], Q_cam[:, 3, 3]
+    C = A * c[:, None, None] - b[:, :, None] * b[:, None, :]
+    Ki = np.linalg.inv(K)
+    C = np.swapaxes(Ki, 1, 2) @ C @ Ki
+    return 0.5 * (C + np.swapaxes(C, 1, 2))
+
+
+def _line_pairs(Cn: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_line_pair` batched over degenerate conics ``Cn`` (m, 3, 3).
+
+    Returns lines (2m, 3) (line 0 then line 1 of each conic, interleaved), their conic index (2m,)
+    and a validity mask (2m,) (complex pair, or a line without a finite direction).
+    """
+    m = len(Cn)
+    c0, c1, c2 = Cn[:, :, 0], Cn[:, :, 1], Cn[:, :, 2]
+    B = np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=1)
+    B = 0.5 * (B + np.swapaxes(B, 1, 2))
+    diag = np.diagonal(B, axis1=1, axis2=2)
+    i = np.argmax(np.abs(diag), axis=1)
+    r = np.arange(m)
+    Bii = diag[r, i]
+    real = Bii < 0
+    p = B[r, :, i] / np.sqrt(np.where(real, -Bii, 1.0))[:, None]
+    px = np.zeros((m, 3, 3))
+    px[:, 0, 1], px[:, 0, 2] = p[:, 2], -p[:, 1]
+    px[:, 1, 0], px[:, 1, 2] = -p[:, 2], p[:, 0]
+    px[:, 2, 0], px[:, 2, 1] = p[:, 1], -p[:, 0]
+    M = Cn + px
+    flat = np.argmax(np.abs(M).reshape(m, 9), axis=1)
+    rr, cc = flat // 3, flat % 3
+    lines = np.empty((m, 2, 3))
+    lines[:, 0] = M[r, rr, :]
+    lines[:, 1] = M[r, :, cc]
+    lines = lines.reshape(2 * m, 3)
+    n2 = np.linalg.norm(lines[:, :2], axis=1)
+    ok = np.repeat(real, 2) & (n2 > 1e-12 * np.linalg.norm(lines, axis=1))
+    lines = lines / np.where(ok, n2, 1.0)[:, None]
+    return lines, np.repeat(r, 2), ok
+
+
+def _clip_lines(lines: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_clip_line` batched: lines (m, 3), boxes (m, 4) -> segments (m, 2, 2) and a validity mask (m,)."""
+    a, b, c = lines[:, 0], lines[:, 1], lines[:, 2]
+    p0 = -c[:, None] * lines[:, :2] / (a * a + b * b)[:, None]
+    t = np.stack([-b, a], axis=1) / np.hypot(a, b)[:, None]
+    lo = np.full(len(lines), -np.inf)
+    hi = np.full(len(lines), np.inf)
+    ok = np.ones(len(lines), dtype=bool)
+    for k in range(2):
+        lo_k, hi_k = boxes[:, k], boxes[:, k + 2]
+        flat = np.abs(t[:, k]) < 1e-15
+        ok &= ~flat | ((lo_k <= p0[:, k]) & (p0[:, k] <= hi_k))
+        tk = np.where(flat, 1.0, t[:, k])
+        sa, sb = (lo_k - p0[:, k]) / tk, (hi_k - p0[:, k]) / tk
+        lo = np.where(flat, lo, np.maximum(lo, np.minimum(sa, sb)))
+        hi = np.where(flat, hi, np.minimum(hi, np.maximum(sa, sb)))
+    ok &= hi > lo
+    seg = np.stack([p0 + np.where(ok, lo, 0.0)[:, None] * t, p0 + np.where(ok, hi, 0.0)[:, None] * t], axis=1)
+    return seg, ok
+
+
+def _segment_ids(lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(segment index, index within the segment) of every element of consecutive segments ``lengths`` (k,)."""
+    total = int(lengths.sum())
+    seg = np.repeat(np.arange(len(lengths)), lengths)
+    start = np.cumsum(lengths) - lengths
+    return seg, np.arange(total) - start[seg]
+
+
+def _curve_runs(points: np.ndarray, lengths: np.ndarray, closed: np.ndarray, boxes: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_resample`'s runs, batched over curves.
+
+    points (N, 2): the dense polylines one after the other, ``lengths`` (k,) points each (> 0), ``closed``
+    (k,) bool, ``boxes`` (k, 4). Returns the run polylines one after the other (T, 2), each run's length
+    (R,) and curve index (R,): the maximal parts of each curve inside its box with >= 2 points, in
+    curve order (a closed curve entirely inside is one run closed by repeating its first point; a
+    closed curve partly inside starts at its first outside point).
+    """
+    start = np.cumsum(lengths) - lengths
+    cid = np.repeat(np.arange(len(lengths)), lengths)
+    bx = boxes[cid]
+    inside = (points[:, 0] >= bx[:, 0]) & (points[:, 0] <= bx[:, 2]) & (points[:, 1] >= bx[:, 1]) \
+        & (points[:, 1] <= bx[:, 3])
+    n_in = np.add.reduceat(inside.astype(np.int64), start)
+    whole = closed & (n_in == lengths)  # closed and entirely inside: the curve closed by its first point
+    j = np.arange(len(points)) - start[cid]
+    first_out = np.minimum.reduceat(np.where(inside, lengths[cid], j), start)
+    shift = np.where(closed & ~whole, first_out, 0)
+    olen = np.where(n_in > 0, lengths + whole, 0)
+    ocid, oj = _segment_ids(olen)
+    order = start[ocid] + (oj + shift[ocid]) % lengths[ocid]
+    ins = inside[order]
+    first = oj == 0
+    last = oj == olen[ocid] - 1
+    prev_in = np.r_[False, ins[:-1]] & ~first
+    next_in = np.r_[ins[1:], False] & ~last
+    rs = np.flatnonzero(ins & ~prev_in)
+    re = np.flatnonzero(ins & ~next_in) + 1
+    rlen = re - rs
+    good = rlen >= 2
+    rs, rlen = rs[good], rlen[good]
+    rid, rj = _segment_ids(rlen)
+    return points[order[rs[rid] + rj]], rlen, ocid[rs]
+
+
+def _arc_samples_batch(runs: np.ndarray, lengths: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_arc_samples` batched: runs (T, 2) one after the other, ``lengths`` (R,) points each (>= 2),
+    ``spacing`` (R,) px per run.
+
+    Returns samples (S, 2) and their run index (S,), run by run in order.
+    """
+    if len(lengths) == 0:
+        return np.zeros((0, 2)), np.zeros(0, dtype=int)
+    start = np.cumsum(lengths) - lengths
+    end = start + lengths - 1  # last point of each run
+    dx, dy = np.diff(runs[:, 0]), np.diff(runs[:, 1])
+    seg = np.sqrt(dx * dx + dy * dy)
+    seg[end[:-1]] = 1.0  # a gap between consecutive runs keeps the cumulative length increasing
+    G = np.r_[0.0, np.cumsum(seg)]
+    L = G[end] - G[start]
+    n = np.where(L > 0, np.floor(L / spacing), -1.0)
+    rid, k = _segment_ids((n + 1).astype(np.int64))
+    sp = spacing[rid]
+    t = (k + 0.5 * (L[rid] / sp - n[rid])) * sp
+    keep = t <= L[rid]
+    rid, t = rid[keep], t[keep]
+    g0 = G[start[rid]]
+    pos = np.searchsorted(G, t + g0, side="right") - 1
+    pos = np.clip(pos, start[rid], end[rid] - 1)
+    s0 = G[pos] - g0
+    ds = G[pos + 1] - G[pos]
+    dp = runs[pos + 1] - runs[pos]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where((ds > 0)[:, None], dp / np.where(ds > 0, ds, 1.0)[:, None] * (t - s0)[:, None] + runs[pos],
+                       runs[pos + 1])
+    return out, rid
+
+
+def sample_contours(
+    Q_cam: np.ndarray,
+    clip_cam: np.ndarray,
+    K: np.ndarray,
+    boxes: np.ndarray,
+    spacing_px: float | np.ndarray = 5.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`sample_contour` (no occluders) for many quadrics at once, in one numpy pass (ALGORITHMS.md §2 "Model").
+
+    Q_cam (n, 4, 4): the quadrics in their camera's coordinates (``E^-T Q E^-1``, eq. 2); clip_cam (n, 4, 4):
+    their clipping quadrics in camera coordinates (all zeros: unclipped); K (n, 3, 3): each one's camera
+    intrinsics; boxes (n, 4): ``(x0, y0, x1, y1)`` px, the image area to sample (``sample_contour``'s
+    ``[-margin, w - 1 + margin] x [-margin, h - 1 + margin]``); spacing_px: image spacing of samples,
+    one for all or (n,) one per quadric.
+
+    Returns (uv (M, 2) px, normals (M, 2) unit and outward, points_cam (M, 3) tangent points in the camera
+    frame, owner (M,) quadric index), quadric by quadric in input order, each quadric's samples in the
+    order :func:`sample_contour` gives them and equal to them up to rounding. Ellipses (every bounded
+    quadric in front of the camera) and line pairs (cylinders, cones) are sampled without any per-quadric
+    Python loop; hyperbolae and parabolae (quadrics crossing the camera plane) fall back to the per-conic
+    curve construction.
+    """
+    Q_cam = np.asarray(Q_cam, dtype=float)
+    clip_cam = np.asarray(clip_cam, dtype=float)
+    K = np.asarray(K, dtype=float)
+    boxes = np.asarray(boxes, dtype=float)
+    n = len(Q_cam)
+    spacing = np.broadcast_to(np.asarray(spacing_px, dtype=float), (n,))
+    empty = (np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, dtype=int))
+    if n == 0:
+        return empty
+    C = pixel_conics(Q_cam, K)
+    cmax = np.abs(C).reshape(n, 9).max(axis=1)
+    Cn = C / cmax[:, None, None]
+    sv = np.linalg.svd(Cn, compute_uv=False)
+    degenerate = sv[:, 2] <= 1e-10 * sv[:, 0]
+    fine = spacing / 8.0
+    # run polylines from every source, with their conic, an ordering key within the conic, and a
+    # flag for the Newton refinement (non-degenerate conics only)
+    run_pts: list[np.ndarray] = []
+    run_len: list[np.ndarray] = []
+    run_owner: list[np.ndarray] = []
+    run_key: list[np.ndarray] = []
+    # line pairs: every clipped line is one 2-point run
+    deg = np.flatnonzero(degenerate)
+    if len(deg):
+        lines, li, ok = _line_pairs(Cn[deg])
+        seg, inb = _clip_lines(lines, boxes[deg[li]])
+        ok &= inb
+        run_pts.append(seg[ok].reshape(-1, 2))
+        run_len.append(np.full(int(ok.sum()), 2))
+        run_owner.append(deg[li[ok]])
+        run_key.append(np.tile([0, 1], len(deg))[ok])
+    nd = np.flatnonzero(~degenerate)
+    if len(nd):
+        A2, b2, c2 = Cn[nd, :2, :2], Cn[nd, :2, 2], Cn[nd, 2, 2]
+        lam, U = np.linalg.eigh(A2)
+        big = np.abs(lam).max(axis=1)
+        ell = (np.abs(lam).min(axis=1) > 1e-10 * big) & (lam[:, 0] * lam[:, 1] > 0)
+        curves_pts, curves_len, curves_closed, curves_owner, curves_key = [], [], [], [], []
+        e = np.flatnonzero(ell)
+        if len(e):
+            center = -np.linalg.solve(A2[e], b2[e][:, :, None])[:, :, 0]
+            g = -(c2[e] + np.einsum("ni,ni->n", b2[e], center))
+            real = g / lam[e, 0] > 0
+            e, center, g = e[real], center[real], g[real]
+            ax = np.sqrt(g[:, None] / lam[e])
+            cnt = np.minimum(2_000_000, np.maximum(256, 2.0 * np.pi * ax.max(axis=1) / np.maximum(fine[nd[e]], 1e-6)))
+            cnt = cnt.astype(np.int64)
+            # center + S U^T, S = (ax0 cos th, ax1 sin th), th = 2 pi k / cnt (as _conic_curves), x = cx + p cos + q sin
+            pq = ax[:, None, :] * U[e]  # (k, 2 [x, y], 2 [cos, sin])
+            half = np.sqrt(pq[:, :, 0] ** 2 + pq[:, :, 1] ** 2)  # half extents of the ellipse's bounding box
+            bx = boxes[nd[e]]
+            tol = 1e-6  # px: far above the rounding of the dense points
+            whole = np.all((center - half > bx[:, :2] + tol) & (center + half < bx[:, 2:] - tol), axis=1)
+            # a closed curve inside the box is one run closed by its first point (th = 0 again)
+            npts = cnt + whole
+            eid, j = _segment_ids(npts)
+            k = np.where(j == cnt[eid], 0, j)
+            th = k * (2.0 * np.pi / cnt[eid])
+            cs, sn = np.cos(th), np.sin(th)
+            pts = np.empty((len(th), 2))
+            for i in range(2):
+                pts[:, i] = center[eid, i] + pq[eid, i, 0] * cs + pq[eid, i, 1] * sn
+            run_pts.append(pts[whole[eid]])
+            run_len.append(npts[whole])
+            run_owner.append(nd[e[whole]])
+            run_key.append(np.zeros(int(whole.sum()), dtype=int))
+            part = ~whole[eid]
+            if part.any():
+                curves_pts.append(pts[part])
+                curves_len.append(cnt[~whole])
+                curves_closed.append(np.ones(int((~whole).sum()), dtype=bool))
+                curves_owner.append(nd[e[~whole]])
+                curves_key.append(np.zeros(int((~whole).sum()), dtype=int))
+        for q in nd[~ell]:  # hyperbolae, parabolae: per conic
+            for sub, (poly, closed) in enumerate(_conic_curves(Cn[q], tuple(boxes[q]), float(fine[q]))):
+                curves_pts.append(poly)
+                curves_len.append(np.array([len(poly)]))
+                curves_closed.append(np.array([closed]))
+                curves_owner.append(np.array([q]))
+                curves_key.append(np.array([sub]))
+        if curves_pts:
+            owner_c = np.concatenate(curves_owner)
+            pts, rl, rc = _curve_runs(np.concatenate(curves_pts), np.concatenate(curves_len),
+                                      np.concatenate(curves_closed), boxes[owner_c])
+            run_pts.append(pts)
+            run_len.append(rl)
+            run_owner.append(owner_c[rc])
+            run_key.append(np.concatenate(curves_key)[rc])
+    if not run_pts:
+        return empty
+    run_of = np.concatenate(run_owner)
+    uv, rid = _arc_samples_batch(np.concatenate(run_pts), np.concatenate(run_len), spacing[run_of])
+    owner = run_of[rid]
+    key = np.concatenate(run_key)[rid]
+    order = np.argsort(owner * 8 + key, kind="stable")
+    uv, owner = uv[order], owner[order]
+    if len(uv) == 0:
+        return empty
+    newton = ~degenerate[owner]
+    if newton.any():
+        Cs = Cn[owner[newton]]
+        x = uv[newton]
+        for _ in range(2):  # as in _conic_points: back onto the conic along the gradient
+            xh = np.c_[x, np.ones(len(x))]
+            f = np.einsum("ni,nij,nj->n", xh, Cs, xh)
+            gr = 2.0 * np.einsum("ni,nij->nj", xh, Cs)[:, :2]
+            gg = np.einsum("ni,ni->n", gr, gr)
+            x = x - np.where(gg > 0, f / np.where(gg > 0, gg, 1.0), 0.0)[:, None] * gr
+        uv[newton] = x
+    uvh = np.c_[uv, np.ones(len(uv))]
+    grad = np.einsum("ni,nij->nj", uvh, C[owner])[:, :2]
+    gnorm = np.linalg.norm(grad, axis=1)
+    keep = gnorm > 1e-12 * cmax[owner]
+    normals = grad / np.where(keep, gnorm, 1.0)[:, None]
+    rays = np.einsum("ni,nji->nj", uvh, np.linalg.inv(K)[owner])
+    Qo = Q_cam[owner]
+    alpha = np.einsum("ni,ni->n", (rays[:, :, None] * rays[:, None, :]).reshape(-1, 9), Qo[:, :3, :3].reshape(-1, 9))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam_t = np.where(np.abs(alpha) > 1e-15,
+                         -np.einsum("ni,ni->n", rays, Qo[:, :3, 3]) / np.where(alpha == 0, 1.0, alpha), np.nan)
+    P = lam_t[:, None] * rays
+    # visibility_mask without occluders: finite, in front, inside the clip
+    fin = np.all(np.isfinite(P), axis=1)
+    Pf = np.where(fin[:, None], P, 1.0)
+    keep &= fin & (Pf[:, 2] > 1e-6)
+    clip_tol = 1e-9 * np.maximum(1.0, np.abs(clip_cam).reshape(n, 16).max(axis=1))
+    Xh = np.c_[Pf, np.ones(len(Pf))]
+    keep &= np.einsum("ni,ni->n", (Xh[:, :, None] * Xh[:, None, :]).reshape(-1, 16),
+                      clip_cam.reshape(n, 16)[owner]) <= clip_tol[owner]
+    return uv[keep], normals[keep], P[keep], owner[keep]
