@@ -5,7 +5,9 @@ For each scene (synthesised once with ``artrack.synth`` and cached as an mcap ba
 ``--cache``, default ``/tmp/artrack_bench``) it runs ``artrack.pipeline.ClosedLoopPipeline``
 for every estimator x feedback on/off and prints one table row each:
 
-    scene cams estimator feedback  MPJPE mm  tracked %  <claim>  fps  blobs ms  skel ms  proj ms
+    scene cams estimator feedback  MPJPE mm  limbs mm  tracked %  <claim>  fps  blobs ms  skel ms  proj ms
+
+(limbs: elbows, wrists, knees, ankles; estimator ``baseline+edges``: the edge features fused.)
 
 MPJPE is over the frames with an estimate and ground truth (the tracker reports nothing while
 its background model seeds and settles: "tracked %" is the share of the frames with ground truth
@@ -143,7 +145,8 @@ def claim_text(r: dict) -> str:
 def run(path: Path, name: str, estimator: str, feedback: bool, body) -> dict:
     scene = read_scene(path)
     truth = {int(s): j for s, j in zip(scene.truth.stamps, scene.truth.joints, strict=True)}
-    config = load_pipeline_config(estimator=estimator, feedback=feedback)
+    kind, _, extra = estimator.partition("+")  # 'baseline+edges': with the edge features fused
+    config = load_pipeline_config(estimator=kind, feedback=feedback, edges=extra == "edges")
     pipe = ClosedLoopPipeline(body, scene.cameras, config)
     frames = list(scene.frames())  # decode before timing
     stamps, est, tru, stage = [], [], [], {}
@@ -161,8 +164,11 @@ def run(path: Path, name: str, estimator: str, feedback: bool, body) -> dict:
     n_j = len(body.joint_names)
     est_a, tru_a = np.asarray(est).reshape(-1, n_j, 3), np.asarray(tru).reshape(-1, n_j, 3)
     errs = np.linalg.norm(est_a - tru_a, axis=2).mean(axis=1) if len(est) else np.zeros(0)
+    limbs = [i for i, n in enumerate(body.joint_names) if n.split("_")[-1] in ("elbow", "wrist", "knee", "ankle")]
+    limb_errs = np.linalg.norm(est_a[:, limbs] - tru_a[:, limbs], axis=2).mean(axis=1) if len(est) else errs
     return {
         "mpjpe_mm": 1e3 * float(np.mean(errs)) if len(errs) else float("nan"),
+        "limbs_mm": 1e3 * float(np.mean(limb_errs)) if len(limb_errs) else float("nan"),
         "tracked": len(errs) / max(sum(int(s) in truth for s, _ in frames), 1),
         "fps": len(frames) / elapsed,
         **claim(name, body, stamps, est_a, tru_a),
@@ -173,7 +179,8 @@ def run(path: Path, name: str, estimator: str, feedback: bool, body) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
-    ap.add_argument("--estimators", nargs="+", default=["baseline", "kinematic", "dynamic"])
+    ap.add_argument("--estimators", nargs="+", default=["baseline", "baseline+edges", "kinematic", "dynamic"],
+                    help="baseline | kinematic | dynamic, '+edges' to fuse the edge features")
     ap.add_argument("--feedback", nargs="+", default=["on", "off"], choices=["on", "off"])
     ap.add_argument("--cameras", nargs="+", type=int, default=[4], help="camera counts to run (e.g. 4 2 1)")
     ap.add_argument("--width", type=int, default=320)
@@ -184,8 +191,8 @@ def main() -> int:
     args = ap.parse_args()
     body = load_body_model()
     rows = []
-    head = (f"{'scene':<11}{'cams':>4} {'estimator':<10}{'feedback':<9}{'MPJPE mm':>9}{'tracked %':>10}"
-            f"  {'claim':<24}{'fps':>6}{'blobs ms':>9}{'skel ms':>8}{'proj ms':>8}")
+    head = (f"{'scene':<11}{'cams':>4} {'estimator':<15}{'feedback':<9}{'MPJPE mm':>9}{'limbs mm':>9}{'tracked %':>10}"
+            f"  {'claim':<24}{'fps':>6}{'blobs ms':>9}{'edges ms':>9}{'skel ms':>8}{'proj ms':>8}")
     print(head)
     for name in args.scenes:
         for n_cam in args.cameras:
@@ -194,8 +201,10 @@ def main() -> int:
                 for fb in args.feedback:
                     r = run(path, name, est, fb == "on", body)
                     rows.append({"scene": name, "cameras": n_cam, "estimator": est, "feedback": fb, **r})
-                    print(f"{name:<11}{n_cam:>4} {est:<10}{fb:<9}{r['mpjpe_mm']:9.1f}{100 * r['tracked']:10.0f}"
+                    print(f"{name:<11}{n_cam:>4} {est:<15}{fb:<9}{r['mpjpe_mm']:9.1f}{r['limbs_mm']:9.1f}"
+                          f"{100 * r['tracked']:10.0f}"
                           f"  {claim_text(r):<24}{r['fps']:6.1f}{r.get('blobs_2d_ms', 0):9.1f}"
+                          f"{r.get('edges_ms', 0):9.1f}"
                           f"{r.get('skeleton_3d_ms', 0):8.1f}{r.get('projection_ms', 0):8.1f}", flush=True)
     print(json.dumps(rows))
     return 0
