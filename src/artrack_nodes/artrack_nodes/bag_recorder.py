@@ -16,7 +16,7 @@ from rclpy.node import Node
 
 from artrack.bags import BagWriter
 
-from .common import RESULT_QOS, declare_all, run_node
+from .common import RECORD_QOS, declare_all, run_node
 
 PARAMS = [
     ("out", "out/recording", "output bag (rosbag2 folder; storage mcap)"),
@@ -54,7 +54,7 @@ class BagRecorderNode(Node):
                 self.subscribed.add(topic)
                 continue
             self.writer.add_topic(topic, types[0])
-            self.create_subscription(cls, topic, lambda data, t=topic: self.on_message(t, data), RESULT_QOS, raw=True)
+            self.create_subscription(cls, topic, lambda data, t=topic: self.on_message(t, data), RECORD_QOS, raw=True)
             self.subscribed.add(topic)
 
     def on_message(self, topic: str, data: bytes) -> None:

@@ -9,8 +9,6 @@ the newest prior is used and its staleness reported in the message.
 from __future__ import annotations
 
 import sys
-import time
-from collections import deque
 
 from rclpy.node import Node
 
@@ -23,6 +21,7 @@ from .common import (
     IMAGE_QOS_RELIABLE,
     IMAGE_QOS_SENSOR,
     RESULT_QOS,
+    FrameQueue,
     camera_topic,
     declare_all,
     msgs,
@@ -47,7 +46,6 @@ class BlobFeaturesNode(Node):
         p = declare_all(self, PARAMS)
         self.camera = p["camera_name"]
         self.lockstep = bool(p["lockstep"])
-        self.tol_ns = int(0.5e9 / float(p["fps"]))
         self.prior_timeout_s = float(p["prior_timeout_s"])
         config = load_pipeline_config(feedback=bool(p["feedback"]), fps=float(p["fps"]), blob_config=p["blob_config"])
         self.stage = BlobStage(self.camera, load_body_model(p["body_model"] or None), config)
@@ -58,8 +56,7 @@ class BlobFeaturesNode(Node):
                                  self.on_image, IMAGE_QOS_RELIABLE if self.lockstep else IMAGE_QOS_SENSOR)
         self.create_subscription(f.cls("artrack_msgs/msg/BlobPrior2DArray"), camera_topic(self.camera, "blob_priors"),
                                  self.on_priors, RESULT_QOS)
-        self.priors: dict[int, list] = {}
-        self.queue: deque = deque()
+        self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.prior_timeout_s, "prior")
         self.frames = 0
         self.create_timer(0.1, self.process_queue)
         self.get_logger().info(f"blob_features for {self.camera} (lockstep={self.lockstep})")
@@ -70,7 +67,7 @@ class BlobFeaturesNode(Node):
         except ValueError as exc:
             self.get_logger().error(f"dropped bad image: {exc}")
             return
-        self.queue.append((ns_from_time(msg.header.stamp), image, time.monotonic()))
+        self.queue.add_image(ns_from_time(msg.header.stamp), image)
         self.process_queue()
 
     def on_priors(self, msg) -> None:
@@ -79,37 +76,12 @@ class BlobFeaturesNode(Node):
         except (ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad prior message on {camera_topic(self.camera, 'blob_priors')}: {exc}")
             return
-        self.priors[stamp] = priors
-        for old in sorted(self.priors)[:-8]:
-            del self.priors[old]
+        self.queue.add_input(stamp, priors)
         self.process_queue()
 
-    def _prior_for(self, stamp: int) -> tuple[int, list] | None:
-        """Lockstep: the prior predicting this frame; free-running: the newest not after it."""
-        if self.lockstep:
-            for s, pri in self.priors.items():
-                if abs(s - stamp) <= self.tol_ns:
-                    return s, pri
-            return None
-        older = [s for s in self.priors if s <= stamp + self.tol_ns]
-        return (max(older), self.priors[max(older)]) if older else None
-
     def process_queue(self) -> None:
-        while self.queue:
-            stamp, image, arrived = self.queue[0]
-            found = self._prior_for(stamp)
-            if self.lockstep and self.frames > 0 and found is None:
-                if time.monotonic() - arrived < self.prior_timeout_s:
-                    return
-                self.get_logger().warning(f"no prior for frame {stamp} after {self.prior_timeout_s}s; going on")
-            self.queue.popleft()
-            if not self.lockstep:  # free-running: only the newest image matters
-                while self.queue:
-                    stamp, image, arrived = self.queue.popleft()
-                found = self._prior_for(stamp)
+        for stamp, image, found in self.queue.ready(lambda: self.frames == 0):
             prior_stamp, priors = found if found is not None else (None, None)
-            if self.frames == 0:
-                prior_stamp, priors = None, None
             try:
                 blobs = self.stage.step(image, priors)
             except ArtrackError as exc:

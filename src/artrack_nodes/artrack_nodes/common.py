@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import rclpy
@@ -34,10 +36,13 @@ IMAGE_QOS_RELIABLE = QoSProfile(
     history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
-#: Results (blobs, priors, edge statistics, bodies): reliable, the last 10 kept for late-matched
+#: Results (blobs, priors, edge statistics, bodies): reliable, the last 100 kept for late-matched
 #: readers (a process graph on a busy machine matches its endpoints over seconds; volatile
-#: readers elsewhere remain compatible).
-RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+#: readers elsewhere remain compatible) and for readers starved of CPU for a few seconds.
+RESULT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: The recorder's readers: as RESULT_QOS, with a deep history (it must not drop what it records).
+RECORD_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: Latched per-camera data (camera_info, extrinsics): late joiners get the last one.
 LATCHED_QOS = QoSProfile(
@@ -194,3 +199,58 @@ class CameraRigListener:
         from artrack.messages import camera_from_msgs
 
         return [camera_from_msgs(n, self.info[n], self.extr[n]) for n in self.names]
+
+
+class FrameQueue:
+    """Images waiting for the per-frame input that belongs to them (blob_features: the priors
+    predicting the frame; edge_features: the predicted body of the frame).
+
+    Lockstep: every image after the first waits for the input stamped within half a frame of
+    it (or ``timeout_s``, then goes on without); free-running: only the newest image is
+    processed, with the newest input not after it. Inputs are kept for the last ``keep`` stamps.
+    """
+
+    def __init__(self, node: Node, lockstep: bool, fps: float, timeout_s: float, what: str, keep: int = 8):
+        self.node = node
+        self.lockstep = lockstep
+        self.tol_ns = int(0.5e9 / fps)
+        self.timeout_s = timeout_s
+        self.what = what
+        self.keep = keep
+        self.inputs: dict[int, Any] = {}
+        self.images: deque = deque()
+
+    def add_input(self, stamp_ns: int, value: Any) -> None:
+        self.inputs[stamp_ns] = value
+        for old in sorted(self.inputs)[:-self.keep]:
+            del self.inputs[old]
+
+    def add_image(self, stamp_ns: int, image: Any) -> None:
+        self.images.append((stamp_ns, image, time.monotonic()))
+
+    def input_for(self, stamp_ns: int) -> tuple[int, Any] | None:
+        """Lockstep: the input of this frame; free-running: the newest not after it."""
+        if self.lockstep:
+            for s, value in self.inputs.items():
+                if abs(s - stamp_ns) <= self.tol_ns:
+                    return s, value
+            return None
+        older = [s for s in self.inputs if s <= stamp_ns + self.tol_ns]
+        return (max(older), self.inputs[max(older)]) if older else None
+
+    def ready(self, first: Callable[[], bool]) -> Iterator[tuple[int, Any, tuple[int, Any] | None]]:
+        """Yield (stamp, image, (input stamp, input) or None) for every image that may be processed
+        now, in order; ``first()`` tells whether no frame has been processed yet (it has no input)."""
+        while self.images:
+            stamp, image, arrived = self.images[0]
+            found = self.input_for(stamp)
+            if self.lockstep and not first() and found is None:
+                if time.monotonic() - arrived < self.timeout_s:
+                    return
+                self.node.get_logger().warning(f"no {self.what} for frame {stamp} after {self.timeout_s}s; going on")
+            self.images.popleft()
+            if not self.lockstep:  # free-running: only the newest image matters
+                while self.images:
+                    stamp, image, arrived = self.images.popleft()
+                found = self.input_for(stamp)
+            yield stamp, image, (None if first() else found)

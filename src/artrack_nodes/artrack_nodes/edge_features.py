@@ -12,8 +12,6 @@ In lockstep mode every image after the first waits for the prediction of its fra
 from __future__ import annotations
 
 import sys
-import time
-from collections import deque
 
 from rclpy.node import Node
 
@@ -31,6 +29,7 @@ from .common import (
     PREDICTION_TOPIC,
     RESULT_QOS,
     CameraRigListener,
+    FrameQueue,
     camera_topic,
     declare_all,
     msgs,
@@ -53,7 +52,6 @@ class EdgeFeaturesNode(Node):
         p = declare_all(self, PARAMS)
         self.camera = p["camera_name"]
         self.lockstep = bool(p["lockstep"])
-        self.tol_ns = int(0.5e9 / float(p["fps"]))
         self.timeout_s = float(p["prediction_timeout_s"])
         self.body = load_body_model(p["body_model"] or None)
         self.edge_config = EdgeTrackerConfig.from_yaml(config_path(p["edge_config"], "edge_features.yaml"))
@@ -66,8 +64,7 @@ class EdgeFeaturesNode(Node):
                                  self.on_image, IMAGE_QOS_RELIABLE if self.lockstep else IMAGE_QOS_SENSOR)
         self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), PREDICTION_TOPIC, self.on_prediction,
                                  RESULT_QOS)
-        self.predictions: dict[int, object] = {}  # predicted stamp -> (L, 4, 4) link poses or None
-        self.queue: deque = deque()
+        self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.timeout_s, "prediction")
         self.frames = 0
         self.create_timer(0.1, self.process_queue)
         self.get_logger().info(f"edge_features for {self.camera} (lockstep={self.lockstep})")
@@ -82,7 +79,7 @@ class EdgeFeaturesNode(Node):
         except ValueError as exc:
             self.get_logger().error(f"dropped bad image: {exc}")
             return
-        self.queue.append((ns_from_time(msg.header.stamp), image, time.monotonic()))
+        self.queue.add_image(ns_from_time(msg.header.stamp), image)
         self.process_queue()
 
     def on_prediction(self, msg) -> None:
@@ -94,37 +91,14 @@ class EdgeFeaturesNode(Node):
         except (ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad prediction on {PREDICTION_TOPIC}: {exc}")
             return
-        self.predictions[body.stamp_ns] = poses
-        for old in sorted(self.predictions)[:-8]:
-            del self.predictions[old]
+        self.queue.add_input(body.stamp_ns, poses)
         self.process_queue()
-
-    def _prediction_for(self, stamp: int) -> tuple[int, object] | None:
-        """Lockstep: the prediction of this frame; free-running: the newest not after it."""
-        if self.lockstep:
-            for s, poses in self.predictions.items():
-                if abs(s - stamp) <= self.tol_ns:
-                    return s, poses
-            return None
-        older = [s for s in self.predictions if s <= stamp + self.tol_ns]
-        return (max(older), self.predictions[max(older)]) if older else None
 
     def process_queue(self) -> None:
         if self.stage is None:  # the camera's calibration has not arrived yet
             return
-        while self.queue:
-            stamp, image, arrived = self.queue[0]
-            found = self._prediction_for(stamp)
-            if self.lockstep and self.frames > 0 and found is None:
-                if time.monotonic() - arrived < self.timeout_s:
-                    return
-                self.get_logger().warning(f"no prediction for frame {stamp} after {self.timeout_s}s; going on")
-            self.queue.popleft()
-            if not self.lockstep:  # free-running: only the newest image matters
-                while self.queue:
-                    stamp, image, arrived = self.queue.popleft()
-                found = self._prediction_for(stamp)
-            ref_stamp, reference = found if (found is not None and self.frames > 0) else (0, None)
+        for stamp, image, found in self.queue.ready(lambda: self.frames == 0):
+            ref_stamp, reference = found if found is not None else (0, None)
             try:
                 stats = self.stage.step(image, reference) if reference is not None else None
             except (ArtrackError, ValueError) as exc:
