@@ -22,19 +22,24 @@ pytestmark = pytest.mark.graph
 FRAMES = 75  # conftest.small_scene: 2.5 s at 30 fps
 
 
-@pytest.fixture(scope="module")
-def graph_run(tmp_path_factory, env, small_scene) -> Path:
-    out = tmp_path_factory.mktemp("graph")
+def _launch(out: Path, scene: Path, env, *sets: str, timeout_s: int = 240) -> Path:
+    """Run config/graph.yaml on ``scene`` (extra ``--set`` values), return the recorded bag."""
     rec = out / "graph"
+    extra = [a for s in sets for a in ("--set", s)]
     proc = subprocess.run(
-        [str(NODE_BIN / "artrack"), "launch", "config/graph.yaml", "--set", f"bag={small_scene}",
-         "--set", f"out={rec}", "--log-dir", str(out / "logs"), "--timeout", "240"],
-        env=env, cwd=REPO, capture_output=True, text=True, timeout=300,
+        [str(NODE_BIN / "artrack"), "launch", "config/graph.yaml", "--set", f"bag={scene}",
+         "--set", f"out={rec}", *extra, "--log-dir", str(out / "logs"), "--timeout", str(timeout_s)],
+        env=env, cwd=REPO, capture_output=True, text=True, timeout=timeout_s + 60,
     )
     logs = "\n".join(p.read_text(errors="replace")[-3000:] for p in sorted((out / "logs").glob("*.log")))
     assert proc.returncode == 0, f"launch failed ({proc.returncode}):\n{proc.stderr}\n{logs}"
     assert rec.exists(), f"recorder wrote nothing:\n{logs}"
     return rec
+
+
+@pytest.fixture(scope="module")
+def graph_run(tmp_path_factory, env, small_scene) -> Path:
+    return _launch(tmp_path_factory.mktemp("graph"), small_scene, env)
 
 
 def _bodies(bag: Path) -> dict[int, np.ndarray]:
@@ -97,16 +102,7 @@ def test_recorded_bag_readable_by_mcap(graph_run):
 
 @pytest.fixture(scope="module")
 def graph_run_edges(tmp_path_factory, env, small_scene) -> Path:
-    out = tmp_path_factory.mktemp("graph_edges")
-    rec = out / "graph"
-    proc = subprocess.run(
-        [str(NODE_BIN / "artrack"), "launch", "config/graph.yaml", "--set", f"bag={small_scene}",
-         "--set", f"out={rec}", "--set", "edges=true", "--log-dir", str(out / "logs"), "--timeout", "300"],
-        env=env, cwd=REPO, capture_output=True, text=True, timeout=360,
-    )
-    logs = "\n".join(p.read_text(errors="replace")[-3000:] for p in sorted((out / "logs").glob("*.log")))
-    assert proc.returncode == 0, f"launch failed ({proc.returncode}):\n{proc.stderr}\n{logs}"
-    return rec
+    return _launch(tmp_path_factory.mktemp("graph_edges"), small_scene, env, "edges=true", timeout_s=300)
 
 
 def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small_scene, env, tmp_path):

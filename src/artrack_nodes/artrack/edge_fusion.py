@@ -97,14 +97,8 @@ class EdgeStage:
             tr.learn_appearance({cam.name: image_bgr}, E)
         timings = dict.fromkeys(STAGES, 0.0)
         grads = {cam.name: tr.prepare(cam, image_bgr)}
-        xi_d, C_d, measured = tr.measure(grads, E, timings)
-        cfg = tr.config
-        D = np.diag([cfg.damping_translation] * 3 + [cfg.damping_rotation] * 3)
-        # measure() returns the damped solution xi' = (C + D)⁻¹ eta: undo the damping
-        eta = np.einsum("nij,nj->ni", C_d, xi_d)
-        C = C_d - D
-        C[~measured] = 0.0
-        eta[~measured] = 0.0
+        xi_hat, C, _ = tr.measure(grads, E, timings)  # no damping prior: unseen directions carry no information
+        eta = np.einsum("nij,nj->ni", C, xi_hat)
         m = tr.last_measurements.get(cam.name)
         found = np.zeros(self.n_links, dtype=np.int64)
         if m is not None:

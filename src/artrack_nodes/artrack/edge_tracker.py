@@ -309,8 +309,9 @@ class EdgeTracker:
 
     def measure(self, grads: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray]], world_from_link: np.ndarray,
                 timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per-link statistics (xi_hat (L, 6), C (L, 6, 6), link frames; measured (L,) bool) at
-        ``world_from_link`` (L, 4, 4); ``grads``: camera name -> :meth:`prepare` output."""
+        """Per-link statistics at ``world_from_link`` (L, 4, 4), link frames: (xi_hat (L, 6), C (L, 6, 6),
+        measured (L,) bool; zero where unmeasured), without the damping prior (see :meth:`damped`);
+        ``grads``: camera name -> :meth:`prepare` output."""
         cfg = self.config
         rows: list[np.ndarray] = []
         dists: list[np.ndarray] = []
@@ -356,12 +357,18 @@ class EdgeTracker:
             for meas, Jc, dc in zip(self.last_measurements.values(), rows, dists):  # final weights, for publishing
                 r = dc - np.einsum("mj,mj->m", Jc, xi_hat[meas.samples.link])
                 meas.weight = np.where(meas.found, robust_weights(np.nan_to_num(r), cfg.c_robust), 0.0)
-        D = np.diag([cfg.damping_translation] * 3 + [cfg.damping_rotation] * 3)
-        eta = np.einsum("nij,nj->ni", C, xi_hat)
-        C = C + D
-        xi_hat = np.linalg.solve(C, eta[..., None])[..., 0] if np.all(np.diag(D) > 0) else xi_hat
         timings["statistics"] += (time.perf_counter() - t0) * 1e3
         return xi_hat, C, measured
+
+    def damped(self, xi_hat: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(xi_hat', C + D): the statistics with the zero-motion prior ``D`` (module docstring),
+        ``xi_hat' = (C + D)⁻¹ C xi_hat`` (unchanged when a damping weight is 0)."""
+        cfg = self.config
+        D = np.diag([cfg.damping_translation] * 3 + [cfg.damping_rotation] * 3)
+        if not np.all(np.diag(D) > 0):
+            return xi_hat, C + D
+        eta = np.einsum("nij,nj->ni", C, xi_hat)
+        return np.linalg.solve(C + D, eta[..., None])[..., 0], C + D
 
     def carried_links(self, measured: np.ndarray) -> np.ndarray:
         """(L,) bool: non-root links with no measured link in their subtree (itself included)."""
@@ -401,6 +408,9 @@ class EdgeTracker:
         C = np.zeros((self.n_links, 6, 6))
         for _ in range(self.config.iterations):
             xi_hat, C, measured = self.measure(grads, E, timings)
+            t1 = time.perf_counter()
+            xi_hat, C = self.damped(xi_hat, C)
+            timings["statistics"] += (time.perf_counter() - t1) * 1e3
             t1 = time.perf_counter()
             carried = self.carried_links(measured)
             Cs = C.copy()

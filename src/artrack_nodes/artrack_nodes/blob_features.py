@@ -14,7 +14,7 @@ from rclpy.node import Node
 
 from artrack.body_model import load_body_model
 from artrack.errors import ArtrackError
-from artrack.messages import bgr_from_image_msg, blob_array_msg, ns_from_time, priors_from_msg
+from artrack.messages import blob_array_msg, priors_from_msg
 from artrack.pipeline import BlobStage, load_pipeline_config
 
 from .common import (
@@ -62,13 +62,8 @@ class BlobFeaturesNode(Node):
         self.get_logger().info(f"blob_features for {self.camera} (lockstep={self.lockstep})")
 
     def on_image(self, msg) -> None:
-        try:
-            image = bgr_from_image_msg(msg, camera_topic(self.camera, "image_raw"))
-        except ValueError as exc:
-            self.get_logger().error(f"dropped bad image: {exc}")
-            return
-        self.queue.add_image(ns_from_time(msg.header.stamp), image)
-        self.process_queue()
+        if self.queue.add_image_msg(msg, camera_topic(self.camera, "image_raw")):
+            self.process_queue()
 
     def on_priors(self, msg) -> None:
         try:

@@ -26,7 +26,7 @@ from rclpy.qos import (
 )
 
 from artrack.errors import ArtrackError
-from artrack.messages import MsgFactory, rclpy_factory
+from artrack.messages import MsgFactory, bgr_from_image_msg, ns_from_time, rclpy_factory
 
 #: Images in free-running mode: best effort, keep last 5 (REP 2003 sensor data).
 IMAGE_QOS_SENSOR = qos_profile_sensor_data
@@ -225,8 +225,16 @@ class FrameQueue:
         for old in sorted(self.inputs)[:-self.keep]:
             del self.inputs[old]
 
-    def add_image(self, stamp_ns: int, image: Any) -> None:
-        self.images.append((stamp_ns, image, time.monotonic()))
+    def add_image_msg(self, msg: Any, topic: str) -> bool:
+        """Queue a sensor_msgs/Image as BGR; a bad one is logged (naming ``topic`` and the field)
+        and dropped. Returns whether it was queued."""
+        try:
+            image = bgr_from_image_msg(msg, topic)
+        except ValueError as exc:
+            self.node.get_logger().error(f"dropped bad image: {exc}")
+            return False
+        self.images.append((ns_from_time(msg.header.stamp), image, time.monotonic()))
+        return True
 
     def input_for(self, stamp_ns: int) -> tuple[int, Any] | None:
         """Lockstep: the input of this frame; free-running: the newest not after it."""

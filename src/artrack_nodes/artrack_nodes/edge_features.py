@@ -20,7 +20,7 @@ from artrack.config import config_path
 from artrack.edge_fusion import EdgeStage
 from artrack.edge_tracker import EdgeTrackerConfig
 from artrack.errors import ArtrackError
-from artrack.messages import bgr_from_image_msg, body_from_msg, edge_stats_msg, ns_from_time
+from artrack.messages import body_from_msg, edge_stats_msg
 from artrack.pipeline import link_poses
 
 from .common import (
@@ -74,13 +74,8 @@ class EdgeFeaturesNode(Node):
         self.process_queue()
 
     def on_image(self, msg) -> None:
-        try:
-            image = bgr_from_image_msg(msg, camera_topic(self.camera, "image_raw"))
-        except ValueError as exc:
-            self.get_logger().error(f"dropped bad image: {exc}")
-            return
-        self.queue.add_image(ns_from_time(msg.header.stamp), image)
-        self.process_queue()
+        if self.queue.add_image_msg(msg, camera_topic(self.camera, "image_raw")):
+            self.process_queue()
 
     def on_prediction(self, msg) -> None:
         try:

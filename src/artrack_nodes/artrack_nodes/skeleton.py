@@ -85,36 +85,29 @@ class SkeletonNode(Node):
         self.flush()
 
     def on_blobs(self, msg) -> None:
-        try:
-            stamp, cam, blobs = blobs_from_msg(msg)
-        except (ValueError, AttributeError) as exc:
-            self.get_logger().error(f"dropped bad Blob2DArray: {exc}")
-            return
-        if cam not in self.names:
-            self.get_logger().error(f"dropped blobs of unknown camera '{cam}' (field camera_name)")
-            return
-        if stamp <= self.last_done:
-            self.get_logger().warning(f"dropped late blobs of {cam} for frame {stamp}")
-            return
-        self.pending.setdefault(stamp, {})[cam] = blobs
-        self.first_seen.setdefault(stamp, time.monotonic())
-        self.flush()
+        self._receive(msg, blobs_from_msg, "Blob2DArray", "blobs", self.pending)
 
     def on_edges(self, msg) -> None:
+        self._receive(msg, lambda m: edge_stats_from_msg(m, self.body.link_names), "LinkEdgeStatistics",
+                      "edge statistics", self.pending_edges)
+
+    def _receive(self, msg, parse, msg_type: str, what: str, store: dict) -> None:
+        """One camera's per-frame input: parsed, checked (camera known, frame not done) and filed
+        under its frame; a bad or late one is logged and dropped."""
         try:
-            stamp, cam, stats = edge_stats_from_msg(msg, self.body.link_names)
+            stamp, cam, value = parse(msg)
         except (ValueError, AttributeError) as exc:
-            self.get_logger().error(f"dropped bad LinkEdgeStatistics: {exc}")
+            self.get_logger().error(f"dropped bad {msg_type}: {exc}")
             return
         if cam not in self.names:
-            self.get_logger().error(f"dropped edge statistics of unknown camera '{cam}' (field camera_name)")
+            self.get_logger().error(f"dropped {what} of unknown camera '{cam}' (field camera_name)")
             return
         if stamp <= self.last_done:
-            self.get_logger().warning(f"dropped late edge statistics of {cam} for frame {stamp}")
+            self.get_logger().warning(f"dropped late {what} of {cam} for frame {stamp}")
             return
-        self.pending_edges.setdefault(stamp, {})[cam] = stats
+        store.setdefault(stamp, {})[cam] = value
+        self.pending.setdefault(stamp, {})  # a frame is pending once any of its inputs is in
         self.first_seen.setdefault(stamp, time.monotonic())
-        self.pending.setdefault(stamp, {})
         self.flush()
 
     def flush(self) -> None:
