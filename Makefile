@@ -21,16 +21,16 @@ test: setup data
 	@$(ENV) ruff check src tests bench
 	@$(ENV) python -m pytest tests -q -p no:cacheprovider
 
-# The main job: synthesise the demo scene, run the node graph (blob and edge
-# features per camera, skeleton, feedback projection) as separate processes over
-# DDS in lockstep, record its output bag, print fps and MPJPE, write the overlay
-# montage and the error-over-time plot to out/demo/.
+# The main job: synthesise the demo scene, run the node graph (blob features per
+# camera, skeleton, feedback projection) as separate processes over DDS in
+# lockstep, record its output bag, print fps and MPJPE, write the overlay montage
+# and the error-over-time plot to out/demo/. (Edge features, `--set edges=true`,
+# are left out: their result swings 122-251 mm under rounding-level changes.)
 demo: setup
 	@mkdir -p $(DEMO_OUT) bags
 	@$(ENV) [ -e $(DEMO_BAG) ] || artrack synth --seed 0 --image-format jpeg --out $(DEMO_BAG)
 	@rm -rf $(DEMO_OUT)/graph $(DEMO_OUT)/logs
-	@$(ENV) artrack launch config/graph.yaml --set bag=$(DEMO_BAG) --set out=$(DEMO_OUT)/graph --set edges=true \
-	  --log-dir $(DEMO_OUT)/logs
+	@$(ENV) artrack launch config/graph.yaml --set bag=$(DEMO_BAG) --set out=$(DEMO_OUT)/graph --log-dir $(DEMO_OUT)/logs
 	@grep -ho "done: .*frames per second.*" $(DEMO_OUT)/logs/bag_player.log | sed 's/^done: /graph: /'
 	@$(ENV) artrack eval --truth $(DEMO_BAG) --pred $(DEMO_OUT)/graph --plot $(DEMO_OUT)/error_over_time.png
 	@$(ENV) artrack overlay $(DEMO_BAG) --pred $(DEMO_OUT)/graph --out $(DEMO_OUT)/overlay.png
