@@ -582,6 +582,7 @@ class BlobTracker2D:
         self.work_size: tuple[int, int] | None = None  # (W, H) working resolution
         self.support_labels: list[str] = []
         self.mode = "startup"
+        self.timings_ms: dict[str, float] = {}  # per-stage ms of the last step
         self._support_work: np.ndarray | None = None
         self._fg_work: np.ndarray | None = None
         self._support_full: np.ndarray | None = None
@@ -662,6 +663,8 @@ class BlobTracker2D:
         img = np.ascontiguousarray(img)
         img_f = img.astype(_F32)
         self._support_full = self._fg_full = None
+        self.timings_ms = {}
+        t0 = time.perf_counter()
 
         fg = self.background.foreground(img, img_f)
         k = self.config.foreground_median
@@ -682,6 +685,11 @@ class BlobTracker2D:
             self.mode = "tracking"
             blobs, explained = self._track(img, fg, models)
         self.background.update(img, img_f, ~fg, fg & ~explained)
+        t1 = time.perf_counter()
+        track = self.timings_ms
+        # per-stage wall time of this frame, ms: classification and statistics (set by _track),
+        # background (foreground test + model update) = the rest
+        self.timings_ms = {"background": 1e3 * (t1 - t0) - sum(track.values()), **track}
         return blobs
 
     def _startup_allowed(self) -> bool:
@@ -754,6 +762,7 @@ class BlobTracker2D:
         self._support_work = support
         stats: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, int]] = {}
         core_colours: dict[str, list[np.ndarray]] = {}
+        t0 = t1 = time.perf_counter()
         if models:
             # the foreground pixels inside the union of the ROIs, as lists (N,)
             x0 = min(m.rect[0] for m in models)
@@ -797,6 +806,7 @@ class BlobTracker2D:
                 best[idx] = score[better]
                 lab[idx] = m.index
             support[ys, xs] = lab
+            t1 = time.perf_counter()
             min_px = self._min_pixels()
             core2, learn2 = cfg.colour_core_sigma**2, cfg.colour_learn_gate**2
             for m, sel, ds2, dc2 in zip(models, sels, ds2s, dc2s):
@@ -841,6 +851,7 @@ class BlobTracker2D:
                 if self.tracks[label].missed > self.config.temporal_max_missed:
                     del self.tracks[label]
         self._learn_colours(core_colours)
+        self.timings_ms = {"classification": 1e3 * (t1 - t0), "statistics": 1e3 * (time.perf_counter() - t1)}
         return blobs, support >= 0
 
     def _bootstrap_colours(self, models: list[_ClassModel], ds2s: list[np.ndarray],

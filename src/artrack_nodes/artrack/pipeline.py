@@ -224,6 +224,12 @@ class ClosedLoopPipeline:
         timings = {"blobs_2d": (t1 - t0) * 1e3, "skeleton_3d": (t2 - t_edges) * 1e3, "projection": (t3 - t2) * 1e3}
         if self.edge_stages:
             timings["edges"] = (t_edges - t1) * 1e3
+        # sub-stages (ms): the blob trackers' summed over cameras, the estimator's update
+        for name in blobs:
+            for k, v in self.blob_stages[name].tracker.timings_ms.items():
+                timings[f"blobs_2d.{k}"] = timings.get(f"blobs_2d.{k}", 0.0) + v
+        for k, v in self.skeleton.estimator.timings_ms.items():
+            timings[f"skeleton_3d.{k}"] = v
         return FrameResult(stamp_ns, blobs, estimate, prediction, used, self.priors, timings)
 
 

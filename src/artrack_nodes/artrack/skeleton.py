@@ -80,6 +80,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -680,6 +681,7 @@ class _Estimator:
         self.missed = 0
         self.quality = 0.0
         self.last_observed: dict[str, Blob3D] = {}
+        self.timings_ms: dict[str, float] = {}  # per-stage ms of the last update
         self._start_verification()
         self._verify_left = 0
 
@@ -741,8 +743,10 @@ class _Estimator:
         self._check_cameras(blobs_by_camera)
         if self.stamp_ns is not None and stamp_ns < self.stamp_ns:
             self.reset()  # time went backwards (a bag looped): start again
+        t0 = time.perf_counter()
         priors = self._triangulation_priors(stamp_ns) if self.theta is not None else None
         obs = self._triangulate(blobs_by_camera, priors)
+        self.timings_ms = {"triangulation": 1e3 * (time.perf_counter() - t0)}
         cfg = self.cfg.tracking
         if self.theta is None or self.status == STATUS_LOST:
             theta0 = None
@@ -761,7 +765,10 @@ class _Estimator:
             if self.theta is None:
                 self.stamp_ns = stamp_ns
                 return _empty_estimate(self.body, stamp_ns, STATUS_INITIALIZING)
-        self._step(stamp_ns, obs)
+        t1 = time.perf_counter()
+        self._step(stamp_ns, obs)  # may add its own stages to timings_ms
+        stages = sum(v for k, v in self.timings_ms.items() if k != "triangulation")
+        self.timings_ms["pose"] = 1e3 * (time.perf_counter() - t1) - stages
         self.missed = self.missed + 1 if self._n_used(obs) < cfg.min_blobs else 0
         if self.missed >= cfg.lost_after_frames:
             self.status = STATUS_LOST
@@ -1213,12 +1220,15 @@ class KinematicEstimator(_Estimator):
         k = self.cfg.kinematic
         dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
         B = len(self.kin.blob_labels)
+        tk = time.perf_counter()
         self.blob_kf.predict(dt)
         self.link_kf.predict(dt)
         z = np.full((B, 3), np.nan)
         Rm = np.tile(np.eye(3), (B, 1, 1))
         mask = np.zeros(B, bool)
+        t0 = time.perf_counter()
         _, fit_d2 = self._outlier_fit(obs, k.outlier_fit_scale)
+        t1 = time.perf_counter()
         for lab, blob in obs.items():
             b = self.kin.blob_index[lab]
             z[b], Rm[b] = blob.mean, self.measurement_cov(blob)
@@ -1243,6 +1253,7 @@ class KinematicEstimator(_Estimator):
         self.blob_kf.x_prior = self.blob_kf.x = x
         self.blob_kf.update(z, Rm, used)
         self.n_accepted = int(mask.sum())
+        t2 = time.perf_counter()
         R_pred = exp_so3(self.omega * dt) @ self.R
         theta, res, terms = self._solve(
             self.p,
@@ -1265,6 +1276,9 @@ class KinematicEstimator(_Estimator):
             self.omega = (1.0 - a) * self.omega + a * w
         self.theta, self.p, self.R = theta, p, R
         self.link_cov = self._link_covariance(p, R, terms)
+        t3 = time.perf_counter()
+        self.timings_ms.update(outlier_fit=1e3 * (t1 - t0), kalman=1e3 * (t2 - tk - (t1 - t0)),
+                               constraints=1e3 * (t3 - t2))
 
     def _outlier_fit(self, obs, scale):
         """Outlier classification against one consistent body (ALGORITHMS.md §1, measurement

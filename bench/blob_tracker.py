@@ -1,0 +1,196 @@
+#!/usr/bin/env python3
+"""The blob-tracker issue's acceptance figures (ALGORITHMS.md §1), all in one run.
+
+Runs the offline closed loop (``artrack.pipeline.ClosedLoopPipeline``, the same code as the
+live graph) on the synthetic scenes of ``bench/closed_loop.py`` (cached bags, 4 cameras,
+320x240, 6 s, seed 3 unless told otherwise) and prints one table per claim:
+
+1. accuracy on the default scene: MPJPE over the 15 joints and the RMS 3-D error of head and
+   wrists, for the raw tracker (the ``baseline`` per-frame body fit) and the skeleton
+   (``--skeleton``, default the Kalman filters + virtual-work solver, ``kinematic``) — and the
+   same two estimators fed *perfect* 2-D blobs (the true blob Gaussians projected, occluded
+   ones left out, 1 px noise: "oracle blobs"), which separates the error of the 2-D blob
+   tracker from that of the 3-D estimator;
+2. the paper's table: RMS of the hand to its best-fit line / of its angle to the smoothed
+   angle, skeleton / raw tracker (the claim: ratio <= 0.7);
+3. self-occlusion: worst hand error with feedback on and off (claim: <= 150 mm with);
+4. distractor: frames where head or a hand is nearer the other person (claim: 0);
+5. camera count: 4, 2 and 1 cameras;
+6. throughput: frames per second at 320x240 and 640x480 and milliseconds per stage
+   (background, MAP classification and blob statistics summed over the 4 cameras;
+   triangulation, outlier fit, Kalman filters, constraint solver, the rest of the pose
+   update; projection of the priors). Wall clock: varies with machine load.
+
+Ends with one JSON line: mpjpe_mm, head_hands_rms_mm, line_ratio, rotation_ratio,
+occlusion_max_hand_err_mm_feedback, occlusion_max_hand_err_mm_no_feedback, fps_320x240,
+fps_640x480 (all for the ``--skeleton`` estimator, feedback on), plus the raw tracker's and the
+oracle's figures for comparison. Run from the repository root (about 15 min on 2 cores)::
+
+    .venv/bin/python bench/blob_tracker.py
+    .venv/bin/python bench/blob_tracker.py --skeleton baseline     # the graph's default estimator
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "artrack_nodes"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+
+import closed_loop as cl  # noqa: E402  (bench/closed_loop.py: scenes, runs, claims)
+import numpy as np  # noqa: E402
+
+from artrack.bags import read_scene  # noqa: E402
+from artrack.body_model import load_body_model  # noqa: E402
+from artrack.motion import pose_at  # noqa: E402
+from artrack.pipeline import load_pipeline_config  # noqa: E402
+from artrack.projection import project_priors  # noqa: E402
+from artrack.skeleton import make_estimator  # noqa: E402
+from artrack.synth import START_STAMP_NS, SceneConfig  # noqa: E402
+from artrack.types import VISIBLE, Blob2D  # noqa: E402
+
+STAGES = [  # (timing key, column) in pipeline order
+    ("blobs_2d.background", "bg"), ("blobs_2d.classification", "classify"), ("blobs_2d.statistics", "stats"),
+    ("skeleton_3d.triangulation", "3-D"), ("skeleton_3d.outlier_fit", "outl.fit"),
+    ("skeleton_3d.kalman", "kalman"), ("skeleton_3d.constraints", "constr."), ("skeleton_3d.pose", "pose"),
+    ("projection", "proj"),
+]
+
+
+def oracle_blobs(body, cameras, theta, stamp_ns: int, rng, sigma_px: float) -> dict[str, list[Blob2D]]:
+    """Perfect 2-D blobs: the true blob Gaussians projected into every camera (first order, as the
+    priors), occluded or off-image ones left out, the means perturbed by ``sigma_px`` noise."""
+    p0, p1, radius, link, _ = body.capsules(theta)
+    occluders = [(body.link_names[k], a, b, r) for a, b, r, k in zip(p0, p1, radius, link, strict=True)]
+    projected = project_priors(body.blobs3d(theta), cameras, stamp_ns, occluders=occluders)
+    return {cam: [Blob2D(p.label, p.mean + sigma_px * rng.standard_normal(2), p.cov, pixel_count=100)
+                  for p in priors if p.visibility == VISIBLE]
+            for cam, priors in projected.items()}
+
+
+def oracle_run(path: Path, name: str, estimator: str, body, sigma_px: float = 1.0) -> dict:
+    """The 3-D estimator alone on oracle blobs of scene ``name`` (no images, no feedback)."""
+    scene = read_scene(path)
+    cfg = SceneConfig(**cl.SCENES[name])
+    est = make_estimator(estimator, body, scene.cameras, load_pipeline_config(estimator=estimator).skeleton)
+    rng = np.random.default_rng(0)
+    stamps, out, tru = [], [], []
+    t0 = time.perf_counter()
+    for s, joints in zip(scene.truth.stamps, scene.truth.joints, strict=True):
+        theta = pose_at(cfg.motion_name, (int(s) - START_STAMP_NS) * 1e-9 - cfg.empty_s, body)
+        if not np.allclose(body.joint_positions(theta), joints, atol=1e-6):
+            raise SystemExit(f"{path}: ground truth does not match motion '{cfg.motion_name}' (stale cache?)")
+        e = est.update(int(s), oracle_blobs(body, scene.cameras, theta, int(s), rng, sigma_px))
+        if np.all(np.isfinite(e.joints)):
+            stamps.append(int(s))
+            out.append(e.joints)
+            tru.append(joints)
+    r = cl.score(name, body, stamps, out, tru, len(scene.truth.stamps))
+    r["fps"] = len(scene.truth.stamps) / (time.perf_counter() - t0)
+    return r
+
+
+def fmt(x: float, spec: str = "9.1f") -> str:
+    return format(x, spec) if np.isfinite(x) else format("-", ">" + spec.split(".")[0])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--skeleton", default="kinematic", choices=["baseline", "kinematic", "dynamic"],
+                    help="the estimator the claims are made for (the raw tracker is always 'baseline')")
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=240)
+    ap.add_argument("--duration", type=float, default=6.0, help="s per scene")
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--cache", default="/tmp/artrack_bench")
+    ap.add_argument("--no-large", action="store_true", help="skip the 640x480 throughput run")
+    args = ap.parse_args()
+    body = load_body_model()
+    sk, raw = args.skeleton, "baseline"
+    estimators = [raw] if sk == raw else [raw, sk]
+    bag = lambda name, cams=4: cl.scene_bag(name, cams, args, body)  # noqa: E731
+    res: dict = {}
+
+    print(f"1. Accuracy, default scene ({args.width}x{args.height}, 4 cameras, feedback on)")
+    print(f"{'estimator':<11}{'blobs':<9}{'MPJPE mm':>9}{'head+hands RMS mm':>19}{'limbs mm':>9}{'tracked %':>10}")
+    for e in estimators:
+        for src, r in (("tracked", cl.run(bag("default"), "default", e, True, body)),
+                       ("oracle", oracle_run(bag("default"), "default", e, body))):
+            res[("default", e, src)] = r
+            print(f"{e:<11}{src:<9}{fmt(r['mpjpe_mm'])}{fmt(r['head_hands_rms_mm'], '19.1f')}"
+                  f"{fmt(r['limbs_mm'])}{100 * r['tracked']:10.0f}", flush=True)
+
+    print("\n2. The paper's table (right hand; skeleton / raw tracker, claim <= 0.7)")
+    print(f"{'scene':<10}{'truth':>8}{'raw':>9}{'skeleton':>10}{'ratio':>7}")
+    ratios = {}
+    for name, key, unit in (("line", "line_rms_mm", "mm"), ("rotation", "rot_rms_deg", "deg")):
+        rr = {e: cl.run(bag(name), name, e, True, body) for e in estimators}
+        truth_key = "truth_" + key
+        ratios[name] = rr[sk][key] / rr[raw][key]
+        print(f"{name:<10}{rr[raw][truth_key]:8.2f}{rr[raw][key]:9.2f}{rr[sk][key]:10.2f}{ratios[name]:7.2f}  {unit}",
+              flush=True)
+
+    print("\n3. Self-occlusion (worst wrist error over the tracked frames; claim <= 150 mm with feedback)")
+    print(f"{'estimator':<11}{'feedback':<9}{'hand max mm':>12}{'frames > 150 mm':>16}{'MPJPE mm':>9}")
+    for e in estimators:
+        for fb in (True, False):
+            r = res[("occlusion", e, fb)] = cl.run(bag("occlusion"), "occlusion", e, fb, body)
+            print(f"{e:<11}{'on' if fb else 'off':<9}{r['hand_max_mm']:12.0f}{r['frames_over_150mm']:16d}"
+                  f"{fmt(r['mpjpe_mm'])}", flush=True)
+
+    print("\n4. Distractor (frames with head or a hand nearer the other person; claim 0)")
+    print(f"{'estimator':<11}{'feedback':<9}{'jump frames':>12}{'MPJPE mm':>9}")
+    for e in estimators:
+        for fb in (True, False):
+            r = res[("distractor", e, fb)] = cl.run(bag("distractor"), "distractor", e, fb, body)
+            print(f"{e:<11}{'on' if fb else 'off':<9}{r['jump_frames']:12d}{fmt(r['mpjpe_mm'])}", flush=True)
+
+    print("\n5. Camera count (default scene, feedback on)")
+    print(f"{'estimator':<11}{'cameras':>8}{'MPJPE mm':>9}{'tracked %':>10}")
+    for e in estimators:
+        for n in (4, 2, 1):
+            r = res[("default", e, "tracked")] if n == 4 else cl.run(bag("default", n), "default", e, True, body)
+            res[("cameras", e, n)] = r
+            print(f"{e:<11}{n:8d}{fmt(r['mpjpe_mm'])}{100 * r['tracked']:10.0f}", flush=True)
+
+    print("\n6. Throughput (default scene, 4 cameras, feedback on; ms per frame, wall clock)")
+    sizes = [(args.width, args.height)] + ([] if args.no_large else [(640, 480)])
+    print(f"{'estimator':<11}{'size':<9}{'fps':>6}" + "".join(f"{c:>9}" for _, c in STAGES))
+    fps = {}
+    for w, h in sizes:
+        big = argparse.Namespace(**{**vars(args), "width": w, "height": h})
+        for e in estimators:
+            r = (res[("default", e, "tracked")] if (w, h) == sizes[0]
+                 else cl.run(cl.scene_bag("default", 4, big, body), "default", e, True, body))
+            fps[(e, w, h)] = r["fps"]
+            stages = "".join(f"{r.get(k + '_ms', 0.0):9.1f}" for k, _ in STAGES)
+            print(f"{e:<11}{f'{w}x{h}':<9}{r['fps']:6.1f}{stages}", flush=True)
+
+    head = {
+        "skeleton": sk,
+        "mpjpe_mm": res[("default", sk, "tracked")]["mpjpe_mm"],
+        "head_hands_rms_mm": res[("default", sk, "tracked")]["head_hands_rms_mm"],
+        "line_ratio": ratios["line"],
+        "rotation_ratio": ratios["rotation"],
+        "occlusion_max_hand_err_mm_feedback": res[("occlusion", sk, True)]["hand_max_mm"],
+        "occlusion_max_hand_err_mm_no_feedback": res[("occlusion", sk, False)]["hand_max_mm"],
+        "fps_320x240": fps.get((sk, 320, 240), float("nan")),
+        "fps_640x480": fps.get((sk, 640, 480), float("nan")),
+        "raw_mpjpe_mm": res[("default", raw, "tracked")]["mpjpe_mm"],
+        "oracle_blobs_mpjpe_mm": res[("default", sk, "oracle")]["mpjpe_mm"],
+        "distractor_jump_frames_feedback": res[("distractor", sk, True)]["jump_frames"],
+        "mpjpe_mm_2_cameras": res[("cameras", sk, 2)]["mpjpe_mm"],
+        "tracked_share_1_camera": res[("cameras", sk, 1)]["tracked"],
+    }
+    clean = {k: (None if not np.isfinite(v) else round(v, 3)) if isinstance(v, float) else v for k, v in head.items()}
+    print(json.dumps(clean))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
