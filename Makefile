@@ -36,11 +36,12 @@ demo: setup
 	@$(ENV) artrack overlay $(DEMO_BAG) --pred $(DEMO_OUT)/graph --out $(DEMO_OUT)/overlay.png
 	@echo "demo outputs in $(DEMO_OUT)/"
 
-# Numbers behind the issue notes (each script prints a table and one JSON line; ~30 min in all).
+# Numbers behind the issue notes (each script prints a table and one JSON line; ~45 min in all).
 bench: setup
 	@$(ENV) python bench/edge_scaling.py
 	@$(ENV) python bench/edge_tracking.py --duration 10 --sizes 320x240
 	@$(ENV) python bench/closed_loop.py
+	@$(ENV) python bench/blob_tracker.py
 
 clean:
 	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log out

@@ -204,8 +204,11 @@ class BlobTrackerConfig:
     temporal_max_missed: int = 5
 
     # ---- blobs and start-up
-    #: blobs with fewer pixels are not reported (full-resolution px)
+    #: blobs with fewer pixels are not reported (full-resolution px of an image min_blob_pixels_width wide)
     min_blob_pixels: int = 20
+    #: image width (px) for which min_blob_pixels is given: a camera w px wide uses
+    #: min_blob_pixels * (w / min_blob_pixels_width)² (a hand's area scales so); 0 = no scaling
+    min_blob_pixels_width: float = 640.0
     #: a label's 8-connected pieces smaller than this fraction of its largest piece are dropped (0 = keep all)
     min_component_fraction: float = 0.1
     #: at start-up, report at most this many skin blobs (largest first)
@@ -250,6 +253,9 @@ class BlobTrackerConfig:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise bad(name, "must be a positive number")
+        v = self.min_blob_pixels_width
+        if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise bad("min_blob_pixels_width", "must be a non-negative number")
         for name in ("background_learning_rate", "background_ghost_rate", "colour_learning_rate"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0:
@@ -635,8 +641,11 @@ class BlobTracker2D:
         return D @ (np.asarray(mean, float) + 0.5) - 0.5, D @ np.asarray(cov, float) @ D
 
     def _min_pixels(self) -> int:
+        """min_blob_pixels in working-resolution pixels (scaled with the image width, see config)."""
         sx, sy = self._scale()
-        return max(1, int(math.ceil(self.config.min_blob_pixels * sx * sy)))
+        ref = self.config.min_blob_pixels_width
+        area = (self.image_size[0] / ref) ** 2 if ref > 0 else 1.0
+        return max(1, int(math.ceil(self.config.min_blob_pixels * area * sx * sy)))
 
     # ------------------------------------------------------------------ step
     def step(self, image_bgr: np.ndarray, priors: list[Prior2D] | None = None) -> list[Blob2D]:
