@@ -12,7 +12,8 @@ export PYTHONDONTWRITEBYTECODE=1
 if [ "${1:-}" != "--no-workspace" ]; then
   _ins=$_artrack_root/ros2_ws/install
   _pyver=$("$_venv/bin/python" -c 'import sys; print(f"python{sys.version_info[0]}.{sys.version_info[1]}")')
-  for _pkg in artrack_msgs artrack_nodes; do
+  for _pkg in tf2_msgs hri_msgs artrack_msgs artrack_nodes; do
+    [ -d "$_ins/$_pkg" ] || continue  # tf2_msgs / hri_msgs: stand-ins (src/ros_standins)
     export AMENT_PREFIX_PATH=$_ins/$_pkg:$AMENT_PREFIX_PATH
     export PYTHONPATH=$_ins/$_pkg/lib/$_pyver/site-packages${PYTHONPATH:+:$PYTHONPATH}
     export LD_LIBRARY_PATH=$_ins/$_pkg/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}

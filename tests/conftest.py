@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -48,3 +49,33 @@ def small_scene(tmp_path_factory, env) -> Path:
                 "--height", "240", "--quiet")
     return out
 
+
+
+@pytest.fixture
+def probe(env):
+    """(node, executor): an rclpy participant of the test process on the test run's private domain
+    (rclpy imported here only: the core tests run without it)."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    context = Context()
+    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]))
+    node = Node("test_probe", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    yield node, executor
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown(context=context)
+
+
+def spin_until(executor, predicate, timeout_s: float, step_s: float = 0.05) -> bool:
+    """Spin ``executor`` until ``predicate()`` holds (True) or ``timeout_s`` passed (False)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=step_s)
+        if predicate():
+            return True
+    return False

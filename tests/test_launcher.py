@@ -21,8 +21,8 @@ GRAPH = REPO / "config" / "graph.yaml"
 def test_graph_expands_one_blob_node_per_camera_with_substituted_parameters():
     specs = expand_graph(read_yaml(GRAPH), "graph.yaml", parse_overrides(["cameras=[a, b]", "estimator=baseline"]))
     names = [s.name for s in specs]
-    assert names == ["blob_features_a", "blob_features_b", "skeleton", "feedback_projection", "bag_recorder",
-                     "bag_player"]
+    assert names == ["blob_features_a", "blob_features_b", "skeleton", "feedback_projection", "body_publisher",
+                     "bag_recorder", "bag_player"]
     blob_a = specs[0]
     assert blob_a.parameters["camera_name"] == "a"
     assert blob_a.parameters["lockstep"] is True  # whole-value substitution keeps the YAML type

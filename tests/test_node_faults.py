@@ -12,37 +12,11 @@ import time
 
 import numpy as np
 import pytest
-import rclpy
-from conftest import NODE_BIN
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
+from conftest import NODE_BIN, spin_until
 
 from artrack.messages import image_msg, rclpy_factory
 
 pytestmark = pytest.mark.graph
-
-
-@pytest.fixture
-def probe(env):
-    context = Context()
-    rclpy.init(context=context, domain_id=int(env["ROS_DOMAIN_ID"]))
-    node = Node("fault_probe", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    yield node, executor
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.shutdown(context=context)
-
-
-def _spin_until(executor, predicate, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.05)
-        if predicate():
-            return True
-    return False
 
 
 def test_blob_features_survives_bad_images_and_priors(env, probe, tmp_path):
@@ -62,7 +36,7 @@ def test_blob_features_survives_bad_images_and_priors(env, probe, tmp_path):
                                         IMAGE_QOS_RELIABLE)
         prior_pub = node.create_publisher(f.cls("artrack_msgs/msg/BlobPrior2DArray"), "/cameras/camx/blob_priors",
                                           RESULT_QOS)
-        assert _spin_until(executor, lambda: (img_pub.get_subscription_count() > 0 and blob_sub.get_publisher_count()
+        assert spin_until(executor, lambda: (img_pub.get_subscription_count() > 0 and blob_sub.get_publisher_count()
                                               > 0 and prior_pub.get_subscription_count() > 0), 30), \
             f"node never matched the probe's topics:\n{log.read_text()}"
 
@@ -91,7 +65,7 @@ def test_blob_features_survives_bad_images_and_priors(env, probe, tmp_path):
         for i, (pub, msg, answered) in enumerate(steps):
             for _attempt in range(15):  # re-send what best-effort transport lost
                 pub.publish(msg)
-                if _spin_until(executor, answered, 2.0):
+                if spin_until(executor, answered, 2.0):
                     break
             else:
                 raise AssertionError(f"no answer to message {i}:\n{log.read_text()}")

@@ -14,6 +14,7 @@ NODES = [
     "feedback_projection",
     "bag_player",
     "bag_recorder",
+    "body_publisher",
 ]
 
 setup(

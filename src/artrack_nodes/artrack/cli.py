@@ -296,7 +296,8 @@ def cmd_overlay(args: argparse.Namespace) -> int:
 def cmd_launch(args: argparse.Namespace) -> int:
     from .launcher import launch, parse_overrides
 
-    return launch(args.graph, parse_overrides(args.set or []), timeout_s=args.timeout, log_dir=args.log_dir)
+    return launch(args.graph, parse_overrides(args.set or []), timeout_s=args.timeout, log_dir=args.log_dir,
+                  only=args.only)
 
 
 # ------------------------------------------------------------------- main
@@ -375,6 +376,9 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a graph variable")
     la.add_argument("--timeout", type=float, default=None, help="stop the graph after this many seconds")
     la.add_argument("--log-dir", default=None, help="write each node's output to LOG_DIR/<node>.log")
+    la.add_argument("--only", action="append", metavar="PATTERN",
+                    help="start only the nodes whose name matches (fnmatch, repeatable): one host's share of "
+                         "the graph, e.g. --only 'blob_features_*' --only bag_player (see scripts/two_hosts.sh)")
     la.set_defaults(func=cmd_launch)
     return ap
 

@@ -15,6 +15,7 @@ graph for real ROS installs is src/artrack_nodes/launch/tracking.launch.py.
 
 from __future__ import annotations
 
+import fnmatch
 import os
 import signal
 import subprocess
@@ -179,11 +180,16 @@ class Launcher:
 
 
 def launch(graph_path: str, overrides: dict[str, Any] | None = None, timeout_s: float | None = None,
-           log_dir: str | None = None) -> int:
+           log_dir: str | None = None, only: list[str] | None = None) -> int:
+    """Run a graph file. ``only``: fnmatch patterns of node names to start (one host's share of a
+    graph spread over several machines); without an until_exit node among them the graph runs
+    until SIGINT/SIGTERM or the timeout."""
     graph = read_yaml(graph_path)
     specs = expand_graph(graph, Path(graph_path).name, overrides)
+    if only:
+        specs = [s for s in specs if any(fnmatch.fnmatch(s.name, pat) for pat in only)]
     if not specs:
-        raise InputError(f"{graph_path}: no nodes to start")
+        raise InputError(f"{graph_path}: no nodes to start" + (f" matching {only}" if only else ""))
     return Launcher(specs, Path(log_dir) if log_dir else None).run(timeout_s)
 
 

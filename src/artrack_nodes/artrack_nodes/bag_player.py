@@ -26,6 +26,7 @@ from .common import (
     camera_topic,
     declare_all,
     msgs,
+    param_limits_help,
     run_node,
 )
 
@@ -38,20 +39,27 @@ PARAMS = [
     ("frame_timeout_s", 30.0, "lockstep: wait this long for a frame's body before going on, s"),
     ("max_frames", 0, "stop after this many frames (0: all)"),
     ("linger_s", 1.0, "after the last frame, keep running this long, s"),
+    ("allow_truncated", False, "a truncated MCAP bag (e.g. a recorder that died): play the frames before the "
+                               "damage (default: refuse, exit 1)"),
     ("wait_for_recorder", False, "also wait until a recorder subscribes to the body, prediction, blob and prior "
                                  "topics before starting"),
 ]
+LIMITS = {"rate": (0.01, 100.0), "start_timeout_s": (0.0, 3600.0), "frame_timeout_s": (0.0, 3600.0),
+          "max_frames": (0, 2**31 - 1), "linger_s": (0.0, 3600.0)}
+RUNTIME = ("rate", "frame_timeout_s", "linger_s")  # read from self.p on every tick
 
 
 class BagPlayerNode(Node):
     def __init__(self):
         super().__init__("bag_player")
-        p = declare_all(self, PARAMS)
+        p = declare_all(self, PARAMS, LIMITS, {k: (lambda v: None) for k in RUNTIME})
         self.p = p
         if not p["bag"]:
             raise SystemExit("bag_player: parameter 'bag' is empty")
         wanted = [c for c in p["cameras"] if c]
-        self.scene = read_scene(p["bag"])
+        self.scene = read_scene(p["bag"], allow_truncated=bool(p["allow_truncated"]))
+        if self.scene.truncated:
+            self.get_logger().warning(f"{p['bag']}: {self.scene.problem}; playing the frames before the damage")
         cameras = [c for c in self.scene.cameras if not wanted or c.name in wanted]
         unknown = sorted(set(wanted) - {c.name for c in self.scene.cameras})
         if unknown:
@@ -149,7 +157,7 @@ class BagPlayerNode(Node):
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(BagPlayerNode, __doc__, PARAMS, args))
+    sys.exit(run_node(BagPlayerNode, __doc__ + "\n" + param_limits_help(LIMITS, RUNTIME), PARAMS, args))
 
 
 if __name__ == "__main__":

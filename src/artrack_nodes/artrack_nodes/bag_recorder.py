@@ -33,7 +33,7 @@ def _msg_class(type_name: str):
 class BagRecorderNode(Node):
     def __init__(self):
         super().__init__("bag_recorder")
-        p = declare_all(self, PARAMS)
+        p = declare_all(self, PARAMS, runtime={})  # all read-only once running
         self.patterns = list(p["topics"])
         self.writer = BagWriter(p["out"])
         self.writer.__enter__()

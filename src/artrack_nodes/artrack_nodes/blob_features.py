@@ -9,6 +9,7 @@ the newest prior is used and its staleness reported in the message.
 from __future__ import annotations
 
 import sys
+import time
 
 from rclpy.node import Node
 
@@ -22,9 +23,11 @@ from .common import (
     IMAGE_QOS_SENSOR,
     RESULT_QOS,
     FrameQueue,
+    NodeDiagnostics,
     camera_topic,
     declare_all,
     msgs,
+    param_limits_help,
     run_node,
 )
 
@@ -38,12 +41,16 @@ PARAMS = [
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
     ("blob_config", "", "blob tracker tunables YAML (empty: config/blob_features.yaml)"),
 ]
+LIMITS = {"fps": (1.0, 1000.0), "prior_timeout_s": (0.0, 3600.0)}
+#: run-time changeable (ros2 param set): feedback on/off, the lockstep prior timeout
+RUNTIME = ("feedback", "prior_timeout_s")
 
 
 class BlobFeaturesNode(Node):
     def __init__(self):
         super().__init__("blob_features")
-        p = declare_all(self, PARAMS)
+        p = declare_all(self, PARAMS, LIMITS, {"feedback": lambda v: setattr(self.stage, "feedback", bool(v)),
+                                               "prior_timeout_s": lambda v: setattr(self.queue, "timeout_s", float(v))})
         self.camera = p["camera_name"]
         self.lockstep = bool(p["lockstep"])
         self.prior_timeout_s = float(p["prior_timeout_s"])
@@ -58,12 +65,17 @@ class BlobFeaturesNode(Node):
                                  self.on_priors, RESULT_QOS)
         self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.prior_timeout_s, "prior")
         self.frames = 0
+        self.diag = NodeDiagnostics(self, update=lambda d: d.set("images_skipped", self.queue.skipped))
+        self.diag.set("prior_staleness_s", float("nan"))
         self.create_timer(0.1, self.process_queue)
         self.get_logger().info(f"blob_features for {self.camera} (lockstep={self.lockstep})")
 
     def on_image(self, msg) -> None:
+        self.diag.input()
         if self.queue.add_image_msg(msg, camera_topic(self.camera, "image_raw")):
             self.process_queue()
+        else:
+            self.diag.drop()
 
     def on_priors(self, msg) -> None:
         try:
@@ -77,18 +89,22 @@ class BlobFeaturesNode(Node):
     def process_queue(self) -> None:
         for stamp, image, found in self.queue.ready(lambda: self.frames == 0):
             prior_stamp, priors = found if found is not None else (None, None)
+            t0 = time.monotonic()
             try:
                 blobs = self.stage.step(image, priors)
             except ArtrackError as exc:
                 self.get_logger().error(f"frame {stamp}: {exc}")
+                self.diag.drop()
                 continue
+            self.diag.processed(time.monotonic() - t0)
             self.frames += 1
             used = prior_stamp if (priors is not None and self.stage.used_priors) else None
+            self.diag.set("prior_staleness_s", (stamp - used) * 1e-9 if used is not None else float("nan"))
             self.pub.publish(blob_array_msg(msgs(), stamp, self.camera, f"{self.camera}_optical_frame", blobs, used))
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(BlobFeaturesNode, __doc__, PARAMS, args))
+    sys.exit(run_node(BlobFeaturesNode, __doc__ + "\n" + param_limits_help(LIMITS, RUNTIME), PARAMS, args))
 
 
 if __name__ == "__main__":

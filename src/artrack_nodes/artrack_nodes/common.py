@@ -14,7 +14,8 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (
@@ -55,6 +56,10 @@ LATCHED_QOS = QoSProfile(
 BODY_TOPIC = "/artrack/body"
 PREDICTION_TOPIC = "/artrack/prediction"
 GROUND_TRUTH_TOPIC = "/artrack/ground_truth"
+DIAGNOSTICS_TOPIC = "/diagnostics"
+#: /diagnostics: reliable, volatile, last 10 (as diagnostic_updater).
+DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE)
 
 
 def camera_topic(camera: str, leaf: str) -> str:
@@ -73,9 +78,22 @@ def msgs() -> MsgFactory:
     return _factory
 
 
-def declare(node: Node, name: str, default: Any, description: str) -> Any:
-    """Declare a parameter with a default and a description; return its value."""
-    return node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+def declare(node: Node, name: str, default: Any, description: str, limits: tuple | None = None,
+            runtime: bool = True) -> Any:
+    """Declare a parameter with a default, a description and optionally an inclusive range
+    ``limits`` (lo, hi) (rclpy refuses values outside it, at start-up and at run time);
+    ``runtime=False`` makes it read-only once the node runs. Returns its value."""
+    desc = ParameterDescriptor(description=description, read_only=not runtime)
+    if limits is not None:
+        lo, hi = limits
+        if isinstance(default, bool) or not isinstance(default, (int, float)):
+            raise TypeError(f"parameter '{name}': a range needs a numeric default")
+        if isinstance(default, int):
+            desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+        else:
+            desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+        desc.additional_constraints = f"{lo} <= {name} <= {hi}"
+    return node.declare_parameter(name, default, desc).value
 
 
 def print_help(prog: str, doc: str, params: list[tuple[str, Any, str]]) -> None:
@@ -105,7 +123,7 @@ def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, st
             code = 1
         else:
             code = int(exc.code or 0)
-    except ArtrackError as exc:  # bad input at start-up: one line, non-zero exit
+    except (ArtrackError, ParameterException) as exc:  # bad input / parameter at start-up: one line, exit 1
         print(f"{os.path.basename(argv[0])}: {exc}", file=sys.stderr)
         code = 1
     finally:
@@ -122,9 +140,116 @@ def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, st
 Params = list[tuple[str, Any, str]]
 
 
-def declare_all(node: Node, params: Params) -> dict[str, Any]:
-    """Declare every (name, default, description) of a node; return the values."""
-    return {name: declare(node, name, default, desc) for name, default, desc in params}
+def declare_all(node: Node, params: Params, limits: dict[str, tuple] | None = None,
+                runtime: dict[str, Callable[[Any], None]] | None = None) -> dict[str, Any]:
+    """Declare every (name, default, description) of a node; return the values.
+
+    ``limits``: name -> (lo, hi) declared ranges. ``runtime``: name -> handler for the parameters
+    that may change while the node runs (``ros2 param set``, or a parameter client): the handler
+    gets the new (range-checked) value; every other parameter of a node that passes ``runtime`` is
+    read-only after start-up. Without ``runtime`` the parameters stay as before (writable, no effect).
+    """
+    limits = limits or {}
+    values = {name: declare(node, name, default, desc, limits.get(name),
+                            runtime=runtime is None or name in runtime)
+              for name, default, desc in params}
+    if runtime:
+        def on_set(changes):
+            for change in changes:
+                if change.name in runtime:
+                    runtime[change.name](change.value)
+                    values[change.name] = change.value
+                    node.get_logger().info(f"parameter {change.name} set to {change.value!r}")
+            return SetParametersResult(successful=True)
+
+        node.add_on_set_parameters_callback(on_set)
+    return values
+
+
+def param_limits_help(limits: dict[str, tuple], runtime: set[str] | dict) -> str:
+    """A --help paragraph on ranges and run-time changeable parameters."""
+    ranges = ", ".join(f"{k} in [{lo}, {hi}]" for k, (lo, hi) in limits.items())
+    return (f"ranges: {ranges or '-'}\nchangeable at run time (ros2 param set): "
+            f"{', '.join(sorted(runtime)) or '-'}; the others are read-only once the node runs")
+
+
+class NodeDiagnostics:
+    """Per-node diagnostic_msgs/DiagnosticArray on /diagnostics (REP 107 style), once per ``period_s``.
+
+    Counts the node's inputs (rate over the last ``window_s``), processing times, dropped
+    frames/messages; nodes add their own values (prior staleness, track quality, tracking
+    status, silent cameras) with :meth:`set` and raise the level with :meth:`warn` / :meth:`error`
+    (reset after each publication).
+    """
+
+    OK, WARN, ERROR, STALE = 0, 1, 2, 3
+
+    def __init__(self, node: Node, period_s: float = 1.0, window_s: float = 5.0,
+                 update: Callable[[NodeDiagnostics], None] | None = None):
+        f = msgs()
+        self.node = node
+        self.update = update  # called before each publication (node-specific values and checks)
+        self.window_s = window_s
+        self.pub = node.create_publisher(f.cls("diagnostic_msgs/msg/DiagnosticArray"), DIAGNOSTICS_TOPIC,
+                                         DIAGNOSTICS_QOS)
+        self.inputs: deque = deque()
+        self.times: deque = deque()
+        self.dropped = 0
+        self.processed_total = 0
+        self.values: dict[str, Any] = {}
+        self.level, self.messages = self.OK, []
+        self.t_start = time.monotonic()
+        node.create_timer(period_s, self.publish)
+
+    def input(self) -> None:
+        self.inputs.append(time.monotonic())
+
+    def processed(self, seconds: float) -> None:
+        self.times.append((time.monotonic(), float(seconds)))
+        self.processed_total += 1
+
+    def drop(self, n: int = 1) -> None:
+        self.dropped += n
+
+    def set(self, key: str, value: Any) -> None:
+        self.values[key] = value
+
+    def warn(self, message: str) -> None:
+        self.level = max(self.level, self.WARN)
+        self.messages.append(message)
+
+    def error(self, message: str) -> None:
+        self.level = max(self.level, self.ERROR)
+        self.messages.append(message)
+
+    def rate_hz(self) -> float:
+        now = time.monotonic()
+        while self.inputs and now - self.inputs[0] > self.window_s:
+            self.inputs.popleft()
+        span = min(self.window_s, now - self.t_start)
+        return len(self.inputs) / span if span > 0 else 0.0
+
+    def publish(self) -> None:
+        f = msgs()
+        if self.update is not None:
+            self.update(self)
+        now = time.monotonic()
+        while self.times and now - self.times[0][0] > self.window_s:
+            self.times.popleft()
+        durations = [d for _, d in self.times]
+        values = {"input_rate_hz": f"{self.rate_hz():.3f}",
+                  "processing_time_ms_mean": f"{1e3 * sum(durations) / len(durations):.3f}" if durations else "nan",
+                  "processing_time_ms_max": f"{1e3 * max(durations):.3f}" if durations else "nan",
+                  "processed_total": str(self.processed_total), "dropped_total": str(self.dropped)}
+        values.update({k: (f"{v:.6g}" if isinstance(v, float) else str(v)) for k, v in self.values.items()})
+        name = self.node.get_fully_qualified_name()
+        status = f("diagnostic_msgs/msg/DiagnosticStatus", level=bytes([self.level]),
+                   name=f"{name.lstrip('/')}: artrack", message="; ".join(self.messages) or "ok", hardware_id=name,
+                   values=[f("diagnostic_msgs/msg/KeyValue", key=k, value=v) for k, v in values.items()])
+        stamp = self.node.get_clock().now().to_msg()
+        self.pub.publish(f("diagnostic_msgs/msg/DiagnosticArray",
+                           header=f("std_msgs/msg/Header", stamp=stamp, frame_id=""), status=[status]))
+        self.level, self.messages = self.OK, []
 
 
 class CameraPublishers:
@@ -182,15 +307,24 @@ class CameraRigListener:
                                      lambda m, n=n: self._got(self.extr, n, m), LATCHED_QOS)
 
     def _got(self, store: dict, name: str, msg: Any) -> None:
+        from artrack.messages import camera_from_msgs
+
         store[name] = msg
+        if name in self.info and name in self.extr:
+            # each camera is checked as soon as it is complete, camera_info alone first, so that the
+            # faulty message (not the one that happened to complete the pair) is dropped and named;
+            # the next good one completes the rig
+            for leaf, bad_store, extr in (("camera_info", self.info, None), ("extrinsics", self.extr,
+                                                                           self.extr[name])):
+                try:
+                    camera_from_msgs(name, self.info[name], extr)
+                except (ArtrackError, ValueError, AttributeError) as exc:
+                    self.node.get_logger().error(f"dropped bad calibration of camera '{name}' on "
+                                                 f"{camera_topic(name, leaf)}: {exc}")
+                    bad_store.pop(name, None)
+                    return
         if not self.done and all(n in self.info and n in self.extr for n in self.names):
-            try:
-                cameras = self.cameras()
-            except (ArtrackError, ValueError, AttributeError) as exc:
-                # a bad camera_info/extrinsics is dropped; the next good one completes the rig
-                self.node.get_logger().error(f"dropped bad calibration of camera '{name}': {exc}")
-                store.pop(name, None)
-                return
+            cameras = self.cameras()
             self.done = True
             if self.on_complete is not None:
                 self.on_complete(cameras)
@@ -219,6 +353,7 @@ class FrameQueue:
         self.keep = keep
         self.inputs: dict[int, Any] = {}
         self.images: deque = deque()
+        self.skipped = 0  # free-running: images dropped for a newer one (diagnostics)
 
     def add_input(self, stamp_ns: int, value: Any) -> None:
         self.inputs[stamp_ns] = value
@@ -260,5 +395,6 @@ class FrameQueue:
             if not self.lockstep:  # free-running: only the newest image matters
                 while self.images:
                     stamp, image, arrived = self.images.popleft()
+                    self.skipped += 1
                 found = self.input_for(stamp)
             yield stamp, image, (None if first() else found)

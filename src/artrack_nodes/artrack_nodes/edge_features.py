@@ -12,6 +12,7 @@ In lockstep mode every image after the first waits for the prediction of its fra
 from __future__ import annotations
 
 import sys
+import time
 
 from rclpy.node import Node
 
@@ -30,9 +31,11 @@ from .common import (
     RESULT_QOS,
     CameraRigListener,
     FrameQueue,
+    NodeDiagnostics,
     camera_topic,
     declare_all,
     msgs,
+    param_limits_help,
     run_node,
 )
 
@@ -44,12 +47,15 @@ PARAMS = [
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
     ("edge_config", "", "edge tracker tunables YAML (empty: config/edge_features.yaml)"),
 ]
+LIMITS = {"fps": (1.0, 1000.0), "prediction_timeout_s": (0.0, 3600.0)}
+RUNTIME = ("prediction_timeout_s",)
 
 
 class EdgeFeaturesNode(Node):
     def __init__(self):
         super().__init__("edge_features")
-        p = declare_all(self, PARAMS)
+        p = declare_all(self, PARAMS, LIMITS,
+                        {"prediction_timeout_s": lambda v: setattr(self.queue, "timeout_s", float(v))})
         self.camera = p["camera_name"]
         self.lockstep = bool(p["lockstep"])
         self.timeout_s = float(p["prediction_timeout_s"])
@@ -66,6 +72,8 @@ class EdgeFeaturesNode(Node):
                                  RESULT_QOS)
         self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.timeout_s, "prediction")
         self.frames = 0
+        self.diag = NodeDiagnostics(self, update=lambda d: d.set("images_skipped", self.queue.skipped))
+        self.diag.set("prediction_staleness_s", float("nan"))
         self.create_timer(0.1, self.process_queue)
         self.get_logger().info(f"edge_features for {self.camera} (lockstep={self.lockstep})")
 
@@ -74,8 +82,11 @@ class EdgeFeaturesNode(Node):
         self.process_queue()
 
     def on_image(self, msg) -> None:
+        self.diag.input()
         if self.queue.add_image_msg(msg, camera_topic(self.camera, "image_raw")):
             self.process_queue()
+        else:
+            self.diag.drop()
 
     def on_prediction(self, msg) -> None:
         try:
@@ -94,18 +105,23 @@ class EdgeFeaturesNode(Node):
             return
         for stamp, image, found in self.queue.ready(lambda: self.frames == 0):
             ref_stamp, reference = found if found is not None else (0, None)
+            t0 = time.monotonic()
             try:
                 stats = self.stage.step(image, reference) if reference is not None else None
             except (ArtrackError, ValueError) as exc:
                 self.get_logger().error(f"frame {stamp}: {exc}")
+                self.diag.drop()
                 continue
+            self.diag.processed(time.monotonic() - t0)
+            self.diag.set("prediction_staleness_s", (stamp - ref_stamp) * 1e-9 if reference is not None
+                          else float("nan"))
             self.frames += 1
             self.pub.publish(edge_stats_msg(msgs(), stamp, self.camera, f"{self.camera}_optical_frame",
                                             self.body.link_names, stats, ref_stamp))
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(EdgeFeaturesNode, __doc__, PARAMS, args))
+    sys.exit(run_node(EdgeFeaturesNode, __doc__ + "\n" + param_limits_help(LIMITS, RUNTIME), PARAMS, args))
 
 
 if __name__ == "__main__":

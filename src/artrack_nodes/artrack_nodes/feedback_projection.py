@@ -8,6 +8,7 @@ publishes /cameras/<cam>/blob_priors stamped with the frame they predict.
 from __future__ import annotations
 
 import sys
+import time
 
 from rclpy.node import Node
 
@@ -16,7 +17,16 @@ from artrack.errors import ArtrackError
 from artrack.messages import body_from_msg, prior_array_msg
 from artrack.pipeline import ProjectionStage
 
-from .common import PREDICTION_TOPIC, RESULT_QOS, CameraRigListener, camera_topic, declare_all, msgs, run_node
+from .common import (
+    PREDICTION_TOPIC,
+    RESULT_QOS,
+    CameraRigListener,
+    NodeDiagnostics,
+    camera_topic,
+    declare_all,
+    msgs,
+    run_node,
+)
 
 PARAMS = [
     ("camera_names", ["cam01", "cam02", "cam03", "cam04"], "cameras to project into"),
@@ -27,7 +37,7 @@ PARAMS = [
 class FeedbackProjectionNode(Node):
     def __init__(self):
         super().__init__("feedback_projection")
-        p = declare_all(self, PARAMS)
+        p = declare_all(self, PARAMS, runtime={})  # all read-only once running
         self.names = list(p["camera_names"])
         self.body = load_body_model(p["body_model"] or None)
         self.stage: ProjectionStage | None = None
@@ -38,6 +48,7 @@ class FeedbackProjectionNode(Node):
         self.rig = CameraRigListener(self, self.names, self.on_cameras)
         self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), PREDICTION_TOPIC, self.on_prediction,
                                  RESULT_QOS)
+        self.diag = NodeDiagnostics(self, update=lambda d: d.set("waiting_for_cameras", self.stage is None))
 
     def on_cameras(self, cameras) -> None:
         self.stage = ProjectionStage(self.body, cameras)
@@ -49,12 +60,16 @@ class FeedbackProjectionNode(Node):
         if self.stage is None:
             self.waiting.append(msg)
             return
+        self.diag.input()
+        t0 = time.monotonic()
         try:
             prediction = body_from_msg(msg)
             priors = self.stage.step(prediction)
         except (ArtrackError, ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad prediction on {PREDICTION_TOPIC}: {exc}")
+            self.diag.drop()
             return
+        self.diag.processed(time.monotonic() - t0)
         f = msgs()
         for name in self.names:
             self.pubs[name].publish(prior_array_msg(f, prediction.stamp_ns, name, f"{name}_optical_frame",

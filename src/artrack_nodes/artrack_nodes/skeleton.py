@@ -28,30 +28,38 @@ from .common import (
     PREDICTION_TOPIC,
     RESULT_QOS,
     CameraRigListener,
+    NodeDiagnostics,
     camera_topic,
     declare_all,
     msgs,
+    param_limits_help,
     run_node,
 )
+from .health import CameraWatch
 
 PARAMS = [
     ("camera_names", ["cam01", "cam02", "cam03", "cam04"], "cameras whose blobs are fused"),
     ("estimator", "baseline", "baseline (raw triangulate-and-fit) | kinematic | dynamic"),
     ("fps", 30.0, "nominal frame rate, Hz (first prediction interval)"),
-    ("lockstep", False, "wait for every camera's blobs of a frame (no timeout)"),
+    ("lockstep", False, "wait for every camera's blobs of a frame (up to lockstep_timeout_s)"),
     ("sync_timeout_s", 0.1, "free-running: process a frame with the cameras that reported after this long, s"),
+    ("lockstep_timeout_s", 30.0, "lockstep: process a frame with the cameras that reported after this long (a dead "
+                                 "camera node must not stall the graph), s; 0 = wait for ever"),
     ("body_id", 0, "id published in TrackedBody.body_id"),
     ("world_frame", "world", "frame_id of the published bodies"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
     ("skeleton_config", "", "estimator tunables YAML (empty: config/skeleton.yaml)"),
     ("edges", False, "also wait for and fuse every camera's edge statistics (edge_features nodes)"),
 ]
+LIMITS = {"fps": (1.0, 1000.0), "sync_timeout_s": (0.0, 60.0), "lockstep_timeout_s": (0.0, 3600.0),
+          "body_id": (0, 2**31 - 1)}
+RUNTIME = ("sync_timeout_s", "lockstep_timeout_s")  # read by flush() on every call
 
 
 class SkeletonNode(Node):
     def __init__(self):
         super().__init__("skeleton")
-        p = declare_all(self, PARAMS)
+        p = declare_all(self, PARAMS, LIMITS, {k: (lambda v: None) for k in RUNTIME})
         self.p = p
         self.names = list(p["camera_names"])
         self.lockstep = bool(p["lockstep"])
@@ -76,6 +84,8 @@ class SkeletonNode(Node):
                 self.create_subscription(f.cls("artrack_msgs/msg/LinkEdgeStatistics"),
                                          camera_topic(n, "edge_statistics"), self.on_edges, RESULT_QOS)
         self.create_timer(0.02, self.flush)
+        self.watch = CameraWatch(self.names, float(p["fps"]))
+        self.diag = NodeDiagnostics(self, update=self.watch.report(self))
         self.get_logger().info(f"skeleton ({p['estimator']}{', edges' if self.edges else ''}) over {self.names}, "
                                f"lockstep={self.lockstep}")
 
@@ -94,16 +104,21 @@ class SkeletonNode(Node):
     def _receive(self, msg, parse, msg_type: str, what: str, store: dict) -> None:
         """One camera's per-frame input: parsed, checked (camera known, frame not done) and filed
         under its frame; a bad or late one is logged and dropped."""
+        self.diag.input()
         try:
             stamp, cam, value = parse(msg)
         except (ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad {msg_type}: {exc}")
+            self.diag.drop()
             return
         if cam not in self.names:
             self.get_logger().error(f"dropped {what} of unknown camera '{cam}' (field camera_name)")
+            self.diag.drop()
             return
+        self.watch.seen(cam)
         if stamp <= self.last_done:
             self.get_logger().warning(f"dropped late {what} of {cam} for frame {stamp}")
+            self.diag.drop()
             return
         store.setdefault(stamp, {})[cam] = value
         self.pending.setdefault(stamp, {})  # a frame is pending once any of its inputs is in
@@ -118,9 +133,17 @@ class SkeletonNode(Node):
             got = self.pending[stamp]
             complete = self._complete(stamp)
             newer_complete = any(self._complete(s) for s in self.pending if s > stamp)
-            timed_out = now - self.first_seen[stamp] > float(self.p["sync_timeout_s"])
-            if not complete and (self.lockstep or not (timed_out or newer_complete)):
+            waited = now - self.first_seen[stamp]
+            timed_out = waited > float(self.p["sync_timeout_s"])
+            lock_limit = float(self.p["lockstep_timeout_s"])
+            if not complete and (not (lock_limit > 0 and waited > lock_limit) if self.lockstep
+                                 else not (timed_out or newer_complete)):
                 return
+            if not complete and self.lockstep:
+                missing = sorted(set(self.names) - set(got))
+                what = f"no blobs from {', '.join(missing)}" if missing else "edge statistics missing"
+                self.get_logger().warning(f"frame {stamp}: {what} after {waited:.1f} s (lockstep_timeout_s); "
+                                          "going on without")
             del self.pending[stamp]
             del self.first_seen[stamp]
             edges = self.pending_edges.pop(stamp, {})
@@ -135,11 +158,14 @@ class SkeletonNode(Node):
 
     def process(self, stamp: int, blobs_by_camera: dict, edges=None) -> None:
         self.last_done = stamp
+        t0 = time.monotonic()
         try:
             estimate, prediction = self.stage.step(stamp, blobs_by_camera, edges)
         except ArtrackError as exc:
             self.get_logger().error(f"frame {stamp}: {exc}")
             return
+        self.diag.processed(time.monotonic() - t0)
+        self.watch.estimated(estimate, sorted(blobs_by_camera))
         f = msgs()
         frame, body_id = self.p["world_frame"], int(self.p["body_id"])
         # Prediction first: the priors for t+1 should be on their way before the player hears "t is done".
@@ -148,7 +174,7 @@ class SkeletonNode(Node):
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(SkeletonNode, __doc__, PARAMS, args))
+    sys.exit(run_node(SkeletonNode, __doc__ + "\n" + param_limits_help(LIMITS, RUNTIME), PARAMS, args))
 
 
 if __name__ == "__main__":
