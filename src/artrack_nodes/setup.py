@@ -15,6 +15,7 @@ NODES = [
     "bag_player",
     "bag_recorder",
     "body_publisher",
+    "loose_limbed",
 ]
 
 setup(

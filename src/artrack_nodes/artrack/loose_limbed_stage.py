@@ -1,0 +1,109 @@
+"""The loose_limbed node's frame step (ALGORITHMS.md §4 in the graph), ROS-free.
+
+Per camera a background model (``blobs.BackgroundModel``: the median of the
+first ``background_seed_frames`` sampled frames) turns images into the
+foreground/edge evidence of ``part_likelihood``; once every camera's
+background is seeded, each frame goes through the ``LooseLimbedTracker``
+(shouters + NBP). ``reinitialise()`` drops the tracker's belief so the next
+frame is found again from no prior pose (what the node does at start and
+whenever the skeleton reports itself lost). Output: a ``BodyEstimate`` with
+the 15 output joints and one LinkEstimate per part (no blobs).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .blobs import BackgroundModel, BlobTrackerConfig
+from .body_model import BodyModel
+from .body_parts import part_geometry
+from .cameras import Camera
+from .errors import InputError
+from .loose_limbed import LooseLimbedBP, LooseLimbedTracker, NBPConfig, TrackerConfig, estimate_parts
+from .part_likelihood import LikelihoodConfig, PartLikelihood, view_evidence
+from .part_potentials import LooseLimbedModel
+from .shouters import Shouter, ShouterConfig
+from .types import STATUS_INITIALIZING, STATUS_TRACKING, BodyEstimate, LinkEstimate
+
+
+@dataclass
+class StageConfig:
+    """Sizes of the node's inference (defaults as in bench/loose_limbed.py's initialisation)."""
+
+    init_iterations: int = 10
+    track_iterations: int = 2
+    n_particles: int = 100
+    use_shouters: bool = True
+    seed: int = 0
+    background_seed_frames: int = 11   #: frames in the background median (blobs.BlobTrackerConfig)
+    background_seed_stride: int = 4    #: one seed frame every this many frames
+
+
+class LooseLimbedStage:
+    """Background seeding + loose-limbed tracking of one multi-camera frame at a time."""
+
+    def __init__(self, body: BodyModel, cameras: Sequence[Camera], model: LooseLimbedModel,
+                 config: StageConfig | None = None):
+        self.config = cfg = config or StageConfig()
+        self.body = body
+        self.cameras = list(cameras)
+        self.geometry = part_geometry(body)
+        self.likelihood = PartLikelihood(self.geometry, LikelihoodConfig())
+        bp = LooseLimbedBP(model, self.geometry, self.likelihood,
+                           NBPConfig(n_particles=cfg.n_particles, n_exclusive=max(cfg.n_particles // 2, 10),
+                                     n_message=max(cfg.n_particles * 2 // 5, 10)), seed=cfg.seed)
+        self.tracker = LooseLimbedTracker(bp, Shouter(self.geometry, self.likelihood, ShouterConfig(), seed=cfg.seed),
+                                          TrackerConfig(init_iterations=cfg.init_iterations,
+                                                        track_iterations=cfg.track_iterations,
+                                                        use_shouters=cfg.use_shouters))
+        bcfg = BlobTrackerConfig(background_seed_frames=cfg.background_seed_frames,
+                                 background_seed_stride=cfg.background_seed_stride)
+        self.backgrounds = {c.name: BackgroundModel(bcfg) for c in self.cameras}
+
+    @property
+    def ready(self) -> bool:
+        """Every camera's background is seeded."""
+        return all(b.ready for b in self.backgrounds.values())
+
+    def reinitialise(self) -> None:
+        """Forget the belief: the next frame is found from no prior pose."""
+        self.tracker.previous = None
+
+    def step_background(self, images: dict[str, np.ndarray]) -> None:
+        """Feed one frame (camera name -> BGR uint8 image) to the background seeds only."""
+        missing = [c.name for c in self.cameras if c.name not in images]
+        if missing:
+            raise InputError(f"loose_limbed: a frame has no image from camera '{missing[0]}'")
+        for c in self.cameras:
+            img = images[c.name]
+            if img.shape[:2] != (c.height, c.width):
+                raise InputError(f"loose_limbed: camera '{c.name}': image {img.shape[1]}x{img.shape[0]} "
+                                 f"differs from the calibration {c.width}x{c.height}")
+            bg = self.backgrounds[c.name]
+            if not bg.ready:
+                bg.foreground(img, img.astype(np.float32))
+
+    def step(self, stamp_ns: int, images: dict[str, np.ndarray]) -> BodyEstimate | None:
+        """Process one frame (camera name -> BGR uint8 image); None while the backgrounds seed or
+        when no part is found (e.g. nobody in view)."""
+        self.step_background(images)
+        if not self.ready:
+            return None
+        views = [view_evidence(c, images[c.name],
+                               np.clip(np.rint(self.backgrounds[c.name].mean), 0, 255).astype(np.uint8),
+                               self.likelihood.config) for c in self.cameras]
+        initialising = not self.tracker.previous
+        joints = self.tracker.step(views)
+        beliefs = {(0, p): b for p, b in (self.tracker.previous or {}).items()}
+        pos, quat = estimate_parts(beliefs, 0, self.geometry.n_parts)
+        links = [LinkEstimate(name=name, position=pos[p], rotation=Rotation.from_quat(quat[p]).as_matrix())
+                 for p, name in enumerate(self.geometry.names) if np.all(np.isfinite(pos[p]))]
+        if not links:
+            return None
+        return BodyEstimate(stamp_ns=int(stamp_ns), joint_names=list(self.body.joint_names), joints=joints,
+                            links=links, blobs=[], status=STATUS_INITIALIZING if initialising else STATUS_TRACKING,
+                            quality=float(np.mean(np.all(np.isfinite(joints), axis=1))))

@@ -1,0 +1,145 @@
+"""loose_limbed: the loose-limbed body by non-parametric BP (ALGORITHMS.md §4) as a node.
+
+Subscribes every camera's /cameras/<cam>/image_raw (plus camera_info and extrinsics) and
+/artrack/body (the skeleton's estimate, for its status). Once all cameras have sent a frame it
+feeds the frame to the ROS-free LooseLimbedStage (per-camera background seeded from the first
+frames, shouters + NBP) and publishes /artrack/loose_limbed/body (artrack_msgs/TrackedBody: the
+15 joints and one link per part; status INITIALIZING on a frame found from no prior pose).
+
+mode=initialiser: infers only at start (until the skeleton has published a body that is not
+LOST) and whenever the skeleton's last body has status LOST — then it re-initialises from no
+prior pose. mode=estimator: tracks every frame, an estimator of its own.
+The skeleton does not yet read /artrack/loose_limbed/body (see the README: the hook belongs
+in the skeleton node).
+"""
+
+from __future__ import annotations
+
+import sys
+
+from rclpy.node import Node
+
+from artrack.body_model import load_body_model
+from artrack.errors import ArtrackError, InputError
+from artrack.loose_limbed_stage import LooseLimbedStage, StageConfig
+from artrack.messages import bgr_from_image_msg, body_msg, ns_from_time
+from artrack.part_potentials import load_model
+from artrack.types import STATUS_LOST
+
+from .common import (
+    BODY_TOPIC,
+    IMAGE_QOS_RELIABLE,
+    IMAGE_QOS_SENSOR,
+    RESULT_QOS,
+    CameraRigListener,
+    camera_topic,
+    declare_all,
+    msgs,
+    param_limits_help,
+    run_node,
+)
+
+OUTPUT_TOPIC = "/artrack/loose_limbed/body"
+
+PARAMS = [
+    ("camera_names", ["cam01", "cam02", "cam03", "cam04"], "cameras whose images are used"),
+    ("mode", "initialiser", "initialiser (at start and when the skeleton is LOST) | estimator (every frame)"),
+    ("reliable_images", False, "reliable image QoS (lockstep bag replay) instead of sensor data"),
+    ("init_iterations", 10, "BP iterations when finding the body from no prior pose"),
+    ("track_iterations", 2, "BP iterations per tracked frame (mode=estimator)"),
+    ("particles", 100, "belief samples per part and iteration"),
+    ("seed", 0, "random seed of the inference"),
+    ("background_frames", 11, "frames in each camera's background median (seeded before any inference)"),
+    ("background_stride", 4, "one background seed frame every this many frames"),
+    ("model", "", "potentials YAML (empty: config/loose_limbed_model.yaml)"),
+    ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
+    ("body_id", 0, "id published in TrackedBody.body_id"),
+    ("world_frame", "world", "frame_id of the published bodies"),
+]
+LIMITS = {"init_iterations": (1, 100), "track_iterations": (1, 50), "particles": (10, 10000),
+          "background_frames": (1, 1000), "background_stride": (1, 1000)}
+RUNTIME: tuple[str, ...] = ()  # all read-only once running
+
+
+class LooseLimbedNode(Node):
+    def __init__(self):
+        super().__init__("loose_limbed")
+        p = declare_all(self, PARAMS, LIMITS, runtime={})
+        self.p = p
+        self.names = list(p["camera_names"])
+        if p["mode"] not in ("initialiser", "estimator"):
+            raise InputError(f"loose_limbed: parameter 'mode' must be initialiser or estimator, got {p['mode']!r}")
+        self.estimator = p["mode"] == "estimator"
+        self.body = load_body_model(p["body_model"] or None)
+        self.model = load_model(p["model"] or None)
+        self.stage: LooseLimbedStage | None = None
+        self.pending: dict[int, dict] = {}
+        self.skeleton_ok = False  # the skeleton has published a body that is not LOST
+        self.needs_init = True
+        f = msgs()
+        self.pub = self.create_publisher(f.cls("artrack_msgs/msg/TrackedBody"), OUTPUT_TOPIC, RESULT_QOS)
+        self.rig = CameraRigListener(self, self.names, self.on_cameras)
+        qos = IMAGE_QOS_RELIABLE if p["reliable_images"] else IMAGE_QOS_SENSOR
+        for n in self.names:
+            self.create_subscription(f.cls("sensor_msgs/msg/Image"), camera_topic(n, "image_raw"),
+                                     lambda m, n=n: self.on_image(n, m), qos)
+        self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), BODY_TOPIC, self.on_skeleton, RESULT_QOS)
+        self.get_logger().info(f"loose_limbed ({p['mode']}) over {self.names}")
+
+    def on_cameras(self, cameras) -> None:
+        p = self.p
+        self.stage = LooseLimbedStage(self.body, cameras, self.model, StageConfig(
+            init_iterations=int(p["init_iterations"]), track_iterations=int(p["track_iterations"]),
+            n_particles=int(p["particles"]), seed=int(p["seed"]),
+            background_seed_frames=int(p["background_frames"]), background_seed_stride=int(p["background_stride"])))
+
+    def on_skeleton(self, msg) -> None:
+        lost = int(msg.status) == STATUS_LOST
+        if lost and not self.needs_init:
+            self.get_logger().info("skeleton reports LOST: re-initialising")
+        self.skeleton_ok = not lost
+        self.needs_init = self.needs_init or lost
+
+    def on_image(self, name: str, msg) -> None:
+        topic = camera_topic(name, "image_raw")
+        try:
+            image = bgr_from_image_msg(msg, topic)
+        except ValueError as exc:
+            self.get_logger().error(f"dropped bad image: {exc}")
+            return
+        stamp = ns_from_time(msg.header.stamp)
+        self.pending.setdefault(stamp, {})[name] = image
+        for old in sorted(self.pending)[:-4]:  # keep the newest few incomplete frames
+            del self.pending[old]
+        if self.stage is not None and len(self.pending.get(stamp, {})) == len(self.names):
+            self.process(stamp, self.pending.pop(stamp))
+
+    def process(self, stamp: int, images: dict) -> None:
+        assert self.stage is not None
+        infer = self.estimator or self.needs_init or not self.skeleton_ok
+        if not infer:
+            if not self.stage.ready:  # keep seeding the backgrounds
+                try:
+                    self.stage.step_background(images)
+                except (ArtrackError, ValueError) as exc:
+                    self.get_logger().error(f"dropped frame {stamp}: {exc}")
+            return
+        if self.needs_init:
+            self.stage.reinitialise()
+        try:
+            est = self.stage.step(stamp, images)
+        except (ArtrackError, ValueError) as exc:
+            self.get_logger().error(f"dropped frame {stamp}: {exc}")
+            return
+        if est is None:
+            return
+        self.needs_init = False
+        self.pub.publish(body_msg(msgs(), est, self.p["world_frame"], int(self.p["body_id"])))
+
+
+def main(args=None) -> None:
+    sys.exit(run_node(LooseLimbedNode, __doc__ + "\n" + param_limits_help(LIMITS, set(RUNTIME)), PARAMS, args))
+
+
+if __name__ == "__main__":
+    main()
