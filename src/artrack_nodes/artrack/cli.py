@@ -1,8 +1,9 @@
-"""The `artrack` command: synth, track, eval, overlay, launch.
+"""The `artrack` command: synth, track, bag-from-videos, eval, overlay, launch.
 
     artrack synth --seed N --out scene.mcap [options]
     artrack track INPUT --out DIR [--allow-truncated]     (INPUT a bag)
     artrack track --videos V1 V2 ... --calib FILE --out DIR
+    artrack bag-from-videos --videos V1 V2 ... --calib FILE --out recording.mcap [--scale S]
     artrack eval --truth BAG_OR_CSV --pred DIR_OR_BAG      (prints "MPJPE <x> mm")
     artrack overlay INPUT --pred DIR_OR_BAG --out montage.png|video.mp4
     artrack launch config/graph.yaml [--set key=value ...]
@@ -78,21 +79,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def _open_input(args: argparse.Namespace):
     """(cameras, frame iterator of (stamp_ns, {camera: image}), n_frames or None, fps or None)."""
     if args.videos:
-        from .cameras import load_calibration
-        from .video import open_videos
-
-        if not args.calib:
-            raise ArtrackError("--videos needs --calib FILE")
-        cameras = load_calibration(args.calib)
-        if args.camera_names:
-            by_name = {c.name: c for c in cameras}
-            for n in args.camera_names:
-                if n not in by_name:
-                    raise ArtrackError(f"{args.calib}: no camera named '{n}'")
-            cameras = [by_name[n] for n in args.camera_names]
-        if len(cameras) < len(args.videos):
-            raise ArtrackError(f"{args.calib}: {len(cameras)} cameras for {len(args.videos)} videos")
-        videos = open_videos(args.videos, cameras[: len(args.videos)], args.scale, fps=args.fps)
+        videos = _open_video_input(args)
         frames = ((stamp, images) for _, stamp, images in videos)
         return list(videos.cameras), frames, videos.n_frames or None, videos.fps
     if not args.input:
@@ -238,6 +225,53 @@ def _track_into(out: Path, args: argparse.Namespace, pipe, body, config, frames,
     print("per-stage ms/frame: " + ", ".join(f"{k} {np.mean(v):.2f}" for k, v in stage_ms.items()))
 
 
+# -------------------------------------------------------- bag-from-videos
+
+
+def _open_video_input(args: argparse.Namespace):
+    """The --videos / --calib / --camera-names / --scale / --fps of `track` and `bag-from-videos`:
+    a :class:`artrack.video.VideoSet` (working-resolution cameras, stamps from the frame rate)."""
+    from .cameras import load_calibration
+    from .video import open_videos
+
+    if not args.calib:
+        raise ArtrackError("--videos needs --calib FILE")
+    cameras = load_calibration(args.calib)
+    if args.camera_names:
+        by_name = {c.name: c for c in cameras}
+        for n in args.camera_names:
+            if n not in by_name:
+                raise ArtrackError(f"{args.calib}: no camera named '{n}'")
+        cameras = [by_name[n] for n in args.camera_names]
+    if len(cameras) < len(args.videos):
+        raise ArtrackError(f"{args.calib}: {len(cameras)} cameras for {len(args.videos)} videos")
+    return open_videos(args.videos, cameras[: len(args.videos)], args.scale, fps=args.fps,
+                       max_frames=getattr(args, "max_frames", None) or None)
+
+
+def cmd_bag_from_videos(args: argparse.Namespace) -> int:
+    """Synchronised videos + calibration -> rosbag2 .mcap: per camera CompressedImage on
+    /cameras/<cam>/image_raw/compressed, CameraInfo (working resolution) and the extrinsics,
+    stamped ``index / fps`` (the layout `artrack synth` writes, without ground truth)."""
+    from types import SimpleNamespace
+
+    from .bags import write_scene_bag
+
+    videos = _open_video_input(args)
+    frames = (SimpleNamespace(stamp_ns=stamp, images=images, joints=None) for _, stamp, images in videos)
+    n = write_scene_bag(args.out, videos.cameras, Progress(frames, total=len(videos) or None, label="bag",
+                                                           quiet=args.quiet),
+                        truth=False, image_format=args.image_format)
+    if n == 0:
+        out = Path(args.out)
+        shutil.rmtree(out, ignore_errors=True) if out.is_dir() else out.unlink(missing_ok=True)
+        raise InputError(f"{args.videos[0]}: no frames")
+    size = videos.cameras[0]
+    print(f"wrote {args.out}: {n} frames x {len(videos.cameras)} cameras at {size.width}x{size.height}, "
+          f"{videos.fps:g} frames per second")
+    return 0
+
+
 # ------------------------------------------------------------------- eval
 
 
@@ -352,6 +386,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a truncated MCAP bag: track the messages before the damage (default: refuse)")
     t.add_argument("--quiet", action="store_true")
     t.set_defaults(func=cmd_track)
+
+    b = sub.add_parser("bag-from-videos", help="write synchronised videos + calibration as a rosbag2 .mcap "
+                       "(CompressedImage + CameraInfo per camera) for replay through the graph")
+    b.add_argument("--videos", nargs="+", required=True, help="video files, one per camera (calibration order)")
+    b.add_argument("--calib", required=True, help="calibration (.yaml, Calib.toml, .qca.txt)")
+    b.add_argument("--out", required=True, help="output bag (.mcap file or rosbag2 folder)")
+    b.add_argument("--camera-names", nargs="+", help="cameras of the calibration the videos belong to (default: "
+                   "the first ones, in file order)")
+    b.add_argument("--scale", type=float, default=1.0,
+                   help="working resolution: images and intrinsics scaled by this factor (default 1)")
+    b.add_argument("--fps", type=float, default=None, help="frame rate for the stamps (default: the videos')")
+    b.add_argument("--image-format", default="jpeg", choices=["jpeg", "png"],
+                   help="CompressedImage encoding (default jpeg)")
+    b.add_argument("--max-frames", type=int, default=0, help="stop after this many frames (0: all)")
+    b.add_argument("--quiet", action="store_true", help="no progress bar")
+    b.set_defaults(func=cmd_bag_from_videos)
 
     e = sub.add_parser("eval", help="MPJPE against ground truth, with an error-over-time plot")
     e.add_argument("--truth", required=True, help="bag with /artrack/ground_truth, or joints CSV")

@@ -286,8 +286,9 @@ class Renderer:
         return pool
 
     def _world_shapes(self, theta: np.ndarray) -> tuple:
+        """World shapes of a pose: theta (n_dof,), or the link poses world_from_link (L, 4, 4)."""
         g = self.geometry
-        T = self.body.forward_kinematics(theta)
+        T = theta if theta.ndim == 3 else self.body.forward_kinematics(theta)
         tp = self.body.transform_points
         p0 = tp(T, g.cap_link, g.cap_p0)
         p1 = tp(T, g.cap_link, g.cap_p1)
@@ -399,6 +400,19 @@ class Renderer:
             images.append(img)
             label_images.append(lab)
         return (images, label_images) if labels else images
+
+
+    def silhouettes(self, world_from_link: np.ndarray) -> list[np.ndarray]:
+        """(H, W) bool mask per camera: where the body model's shapes, placed at the link poses
+        ``world_from_link`` (L, 4, 4) (e.g. a tracked estimate), project (no background, no noise)."""
+        T = np.asarray(world_from_link, dtype=float)
+        out = []
+        for cam in self.cameras:
+            lab = np.zeros((cam.height, cam.width), np.uint8)
+            for _, kind, params, _, _ in self._primitives(cam, [(0, T)]):
+                self._draw(lab, kind, params, 1, 1.0, cv2.LINE_8)
+            out.append(lab.astype(bool))
+        return out
 
 
 _RENDERERS: dict[tuple, Renderer] = {}
