@@ -11,7 +11,7 @@ import yaml
 from conftest import NODE_BIN, REPO
 
 NODES = ["blob_features", "edge_features", "skeleton", "feedback_projection", "body_publisher", "bag_player",
-         "bag_recorder", "camera_ingest", "loose_limbed"]
+         "bag_recorder", "camera_ingest", "loose_limbed", "particle_tracker", "object_features"]
 
 
 def _module(name: str):

@@ -16,6 +16,8 @@ NODES = [
     "bag_recorder",
     "body_publisher",
     "loose_limbed",
+    "particle_tracker",
+    "object_features",
 ]
 
 setup(

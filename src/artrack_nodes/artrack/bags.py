@@ -1010,8 +1010,12 @@ def write_scene_bag(
     truth: bool = True,
     image_format: str = "raw",
     storage: str | None = None,
+    extra_topics: dict[str, str] | None = None,
 ) -> int:
     """Write a multi-camera scene (layout in the module docstring); returns the number of frames.
+
+    extra_topics: {topic: msgtype} of further per-frame messages (e.g. point clouds, an object
+    pose); a frame's ``extra_messages`` ((topic, rosbags message) pairs) are written at its stamp.
 
     frames: iterable of objects with ``stamp_ns`` (int ns), ``images`` ({camera name: (H, W, 3)
     uint8 BGR}, sizes as calibrated) and, for ``truth``, ``joints`` ((J, 3) world, m) named by
@@ -1041,6 +1045,8 @@ def write_scene_bag(
             )
         if truth:
             bag.add_topic(GROUND_TRUTH_TOPIC, "artrack_msgs/msg/TrackedBody")
+        for topic, msgtype in (extra_topics or {}).items():
+            bag.add_topic(topic, msgtype)
         t0 = int(first.stamp_ns) if first is not None else 0
         for c in cameras:
             bag.write(camera_topic(c.name, "extrinsics"), t0, extrinsics_msg(f, c, t0, WORLD_FRAME))
@@ -1084,6 +1090,8 @@ def write_scene_bag(
                     stamp_ns=stamp, joint_names=list(joint_names), joints=joints, links=[], blobs=[]
                 )
                 bag.write(GROUND_TRUTH_TOPIC, stamp, body_msg(f, est))
+            for topic, msg in getattr(frame, "extra_messages", ()):
+                bag.write(topic, stamp, msg)
             n += 1
             frame = next(it, None)
     return n

@@ -59,6 +59,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from .synth import SceneConfig, generate_scene, scene_cameras
 
     _check_synth_args(args)
+    if args.motion.startswith("stick_"):
+        return _synth_stick(args)
     config = SceneConfig(
         n_cameras=args.cameras, width=args.width, height=args.height, fps=args.fps, duration_s=args.duration,
         seed=args.seed, noise_sigma=args.noise, motion=args.motion, occlusion=args.occlusion,
@@ -70,6 +72,41 @@ def cmd_synth(args: argparse.Namespace) -> int:
     frames = Progress(generate_scene(config, body), total=n_frames, label="synth", quiet=args.quiet)
     write_scene_bag(args.out, cameras, frames, joint_names=body.joint_names, image_format=args.image_format)
     print(f"wrote {args.out}: {n_frames} frames x {len(cameras)} cameras")
+    return 0
+
+
+def _synth_stick(args: argparse.Namespace) -> int:
+    """A stick motion (ALGORITHMS.md §3): one RGB-D camera, points and the stick pose in the bag."""
+    from .bags import write_scene_bag
+    from .body_model import load_body_model
+    from .messages import rosbags_factory
+    from .stick_scene import (
+        STICK_MOTIONS,
+        STICK_TOPIC,
+        generate_stick_scene,
+        points_topic,
+        rgbd_camera,
+        scene_bag_messages,
+    )
+
+    if args.motion not in STICK_MOTIONS:
+        raise InputError(f"--motion {args.motion}: unknown stick motion (expected one of {', '.join(STICK_MOTIONS)})")
+    body = load_body_model(args.body_model)
+    cam = rgbd_camera(args.width, args.height)
+    f = rosbags_factory()
+    n_frames = int(round(args.duration * args.fps))
+
+    def frames():
+        for fr in generate_stick_scene(args.motion, seed=args.seed, fps=args.fps, duration_s=args.duration,
+                                       camera=cam, body=body, pixel_noise=args.noise):
+            fr.extra_messages = scene_bag_messages(fr, cam, f)
+            yield fr
+
+    write_scene_bag(args.out, [cam], Progress(frames(), total=n_frames, label="synth", quiet=args.quiet),
+                    joint_names=body.joint_names, image_format=args.image_format,
+                    extra_topics={points_topic(cam.name): "sensor_msgs/msg/PointCloud2",
+                                  STICK_TOPIC: "geometry_msgs/msg/PoseStamped"})
+    print(f"wrote {args.out}: {n_frames} frames of camera {cam.name} (RGB-D) with {STICK_TOPIC}")
     return 0
 
 
@@ -350,7 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--fps", type=float, default=30.0)
     s.add_argument("--duration", type=float, default=10.0, help="seconds (default 10)")
     s.add_argument("--noise", type=float, default=2.0, help="pixel noise sigma, grey levels")
-    s.add_argument("--motion", default="default", help="scripted motion (default: walk, wave, reach)")
+    s.add_argument("--motion", default="default", help="scripted motion (default: walk, wave, reach); "
+                   "stick_side / stick_sword: one RGB-D camera (--width/--height; 320x240 recommended), "
+                   "a held stick on /artrack/stick and points on /cameras/rgbd/points (ALGORITHMS.md §3)")
     s.add_argument("--occlusion", action="store_true", help="include a self-occlusion segment")
     s.add_argument("--distractor", action="store_true", help="a second person walks through")
     s.add_argument("--empty-start", type=float, default=0.0, metavar="S",

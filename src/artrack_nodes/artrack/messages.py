@@ -437,3 +437,83 @@ def bgr_from_image_msg(msg: Any, where: str = "image") -> np.ndarray:
         raise ValueError(f"{where}: data has {data.size} bytes, expected {h}x{step} (fields 'height'/'step')")
     img = data[: h * step].reshape(h, step)[:, : w * enc.channels].reshape(h, w, enc.channels)
     return img.copy() if enc.to_bgr is None else enc.to_bgr(img)
+
+
+# --------------------------------------------------------------------- point clouds and objects (§3)
+
+#: sensor_msgs/PointField datatypes we read (FLOAT32, FLOAT64)
+_POINTFIELD_DTYPES = {7: "f4", 8: "f8"}
+
+
+def pointcloud_msg(f: MsgFactory, points: np.ndarray, stamp_ns: int, frame_id: str) -> Any:
+    """sensor_msgs/PointCloud2 (unorganised, fields x, y, z float32, little-endian) from (K, 3) points, m."""
+    pts = np.ascontiguousarray(np.asarray(points, dtype="<f4").reshape(-1, 3))
+    fields = [f("sensor_msgs/msg/PointField", name=n, offset=4 * k, datatype=7, count=1)
+              for k, n in enumerate("xyz")]
+    return f(
+        "sensor_msgs/msg/PointCloud2",
+        header=header_msg(f, stamp_ns, frame_id),
+        height=1,
+        width=len(pts),
+        fields=fields,
+        is_bigendian=False,
+        point_step=12,
+        row_step=12 * len(pts),
+        data=pts.view(np.uint8).reshape(-1),
+        is_dense=bool(np.all(np.isfinite(pts))),
+    )
+
+
+def points_from_pointcloud_msg(msg: Any, where: str = "points") -> np.ndarray:
+    """(K, 3) float64 finite points from a sensor_msgs/PointCloud2 with float x, y, z fields
+    (any point_step / row_step / endianness; NaN points dropped). ValueError names the bad field."""
+    byname = {fl.name: fl for fl in msg.fields}
+    for n in "xyz":
+        if n not in byname:
+            raise ValueError(f"{where}: no '{n}' in field 'fields'")
+        if int(byname[n].datatype) not in _POINTFIELD_DTYPES:
+            raise ValueError(f"{where}: field '{n}' has datatype {byname[n].datatype}, expected FLOAT32 (7) "
+                             "or FLOAT64 (8) (field 'fields')")
+    h, w = int(msg.height), int(msg.width)
+    step, row = int(msg.point_step), int(msg.row_step)
+    endian = ">" if msg.is_bigendian else "<"
+    dtype = np.dtype({"names": list("xyz"),
+                      "formats": [endian + _POINTFIELD_DTYPES[int(byname[n].datatype)] for n in "xyz"],
+                      "offsets": [int(byname[n].offset) for n in "xyz"], "itemsize": step})
+    if step < dtype.itemsize or max(int(byname[n].offset) for n in "xyz") + 4 > step:
+        raise ValueError(f"{where}: 'point_step' {step} too small for the x, y, z offsets")
+    data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data, dtype=np.uint8)
+    if row < w * step or data.size < h * row:
+        raise ValueError(f"{where}: data has {data.size} bytes, expected {h} rows of {row} "
+                         "(fields 'row_step'/'height')")
+    rows = data[: h * row].reshape(h, row)[:, : w * step]
+    rec = np.ascontiguousarray(rows).view(dtype).reshape(-1)
+    pts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(float)
+    return pts[np.all(np.isfinite(pts), axis=1)]
+
+
+def stick_pose_msg(f: MsgFactory, a: np.ndarray, b: np.ndarray, stamp_ns: int, frame_id: str = WORLD_FRAME) -> Any:
+    """geometry_msgs/PoseStamped of a stick from b to a (m): position = the midpoint, the
+    orientation turns the x axis onto (a − b) / |a − b|. The length travels as a parameter."""
+    a, b = _arr(a, 3), _arr(b, 3)
+    d = a - b
+    x = d / max(float(np.linalg.norm(d)), 1e-12)
+    q = Rotation.align_vectors(x[None], np.array([[1.0, 0.0, 0.0]]))[0].as_quat()
+    c = 0.5 * (a + b)
+    return f("geometry_msgs/msg/PoseStamped", header=header_msg(f, stamp_ns, frame_id),
+             pose=f("geometry_msgs/msg/Pose", position=_point(f, c),
+                    orientation=f("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                  w=float(q[3]))))
+
+
+def stick_from_pose_msg(msg: Any, length: float, where: str = "stick") -> tuple[np.ndarray, np.ndarray]:
+    """(a (3,), b (3,)) end points of a stick of ``length`` m from a PoseStamped (see stick_pose_msg)."""
+    o = msg.pose.orientation
+    q = np.array([o.x, o.y, o.z, o.w], float)
+    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
+        raise ValueError(f"{where}: field 'pose.orientation' is not a rotation")
+    c = np.array(_xyz(msg.pose.position), float)
+    if not np.all(np.isfinite(c)):
+        raise ValueError(f"{where}: field 'pose.position' is not finite")
+    x = Rotation.from_quat(q / np.linalg.norm(q)).apply([1.0, 0.0, 0.0])
+    return c + 0.5 * length * x, c - 0.5 * length * x

@@ -43,6 +43,8 @@ PARAMS = [
                                "damage (default: refuse, exit 1)"),
     ("wait_for_recorder", False, "also wait until a recorder subscribes to the body, prediction, blob and prior "
                                  "topics before starting"),
+    ("extra_topics", [""], "further per-frame topics to replay with each frame's images, matched by stamp "
+                           "(e.g. /cameras/rgbd/points, /artrack/stick); empty: none"),
 ]
 LIMITS = {"rate": (0.01, 100.0), "start_timeout_s": (0.0, 3600.0), "frame_timeout_s": (0.0, 3600.0),
           "max_frames": (0, 2**31 - 1), "linger_s": (0.0, 3600.0)}
@@ -67,6 +69,7 @@ class BagPlayerNode(Node):
         self.names = [c.name for c in cameras]
         self.frames = self.scene.frames()
         self.pubs = CameraPublishers(self, cameras, reliable_images=bool(p["lockstep"]))
+        self.extra = self._load_extra([t for t in p["extra_topics"] if t])
         self.create_subscription(msgs().cls("artrack_msgs/msg/TrackedBody"), BODY_TOPIC, self.on_body, RESULT_QOS)
         self.lockstep = bool(p["lockstep"])
         self.state = "wait_graph"
@@ -80,6 +83,29 @@ class BagPlayerNode(Node):
         self.next_frame = None
         self.timer = self.create_timer(0.002, self.tick)
         self.get_logger().info(f"playing {p['bag']} ({len(self.names)} cameras, lockstep={self.lockstep})")
+
+    def _load_extra(self, topics: list[str]) -> dict:
+        """{log stamp: [(publisher, serialised message)]} of the extra topics (read up front).
+        Point clouds get the image QoS, other topics the result QoS."""
+        if not topics:
+            return {}
+        from artrack.bags import open_bag
+
+        from .common import IMAGE_QOS_RELIABLE, IMAGE_QOS_SENSOR
+
+        out: dict = {}
+        with open_bag(self.p["bag"]) as bag:
+            types = bag.topics()
+            pubs = {}
+            for t in topics:
+                if t not in types:
+                    raise ArtrackError(f"{self.p['bag']}: no topic '{t}' (parameter extra_topics)")
+                image_qos = IMAGE_QOS_RELIABLE if self.p["lockstep"] else IMAGE_QOS_SENSOR
+                qos = image_qos if types[t].endswith("/PointCloud2") else RESULT_QOS
+                pubs[t] = self.create_publisher(msgs().cls(types[t]), t, qos)
+            for topic, stamp, data in bag.messages(topics, raw=True):
+                out.setdefault(int(stamp), []).append((pubs[topic], bytes(data)))
+        return out
 
     def on_body(self, msg) -> None:
         self.bodies_seen.add(ns_from_time(msg.header.stamp))
@@ -132,6 +158,8 @@ class BagPlayerNode(Node):
                 due = self.t0_wall + (stamp - self.t0_stamp) * 1e-9 / float(self.p["rate"])
                 if now < due:
                     return
+            for pub, data in self.extra.pop(stamp, []):
+                pub.publish(data)  # serialised CDR, as recorded
             self.pubs.publish_images(stamp, {n: images[n] for n in self.names if n in images})
             self.sent += 1
             if self.t_first_sent is None:
