@@ -126,12 +126,21 @@ def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, st
     except (ArtrackError, ParameterException) as exc:  # bad input / parameter at start-up: one line, exit 1
         print(f"{os.path.basename(argv[0])}: {exc}", file=sys.stderr)
         code = 1
+    except Exception:
+        if rclpy.ok():
+            raise
+        # SIGTERM / SIGINT shut the context down while the executor was waiting or a callback
+        # ran (rcl then fails on the invalid context, e.g. in rcl_wait): a clean stop.
     finally:
-        if node is not None:
-            close = getattr(node, "close", None)
-            if close is not None:
-                close()
-            node.destroy_node()
+        try:
+            if node is not None:
+                close = getattr(node, "close", None)
+                if close is not None:
+                    close()
+                node.destroy_node()
+        except Exception:
+            if rclpy.ok():
+                raise
         if rclpy.ok():
             rclpy.shutdown()
     return code
