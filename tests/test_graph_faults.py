@@ -200,3 +200,56 @@ def test_lockstep_skeleton_goes_on_without_a_dead_camera(env, probe, tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+def test_skeleton_reseeded_from_another_estimators_body(env, probe, tmp_path):
+    """reseed_topic (ALGORITHMS.md §4: the loose-limbed body hands its pose to the skeleton): a
+    TRACKING body arriving there starts the not-yet-started estimator at that pose; the bodies
+    published afterwards are TRACKING there although no blob was ever seen."""
+    node, executor = probe
+    f = rclpy_factory()
+    from artrack.body_model import load_body_model
+    from artrack.messages import body_from_msg, body_msg
+    from artrack.motion import pose_at
+    from artrack.types import STATUS_TRACKING, BodyEstimate
+    from artrack_nodes.common import LATCHED_QOS, RESULT_QOS
+
+    body = load_body_model()
+    cams = {c.name: c for c in (c.__class__(**{**c.__dict__, "name": n}) for c, n in
+                                zip(default_rig(2, 160, 120), ["camA", "camB"], strict=True))}
+    pubs = [(node.create_publisher(f.cls("sensor_msgs/msg/CameraInfo"), f"/cameras/{n}/camera_info", LATCHED_QOS),
+             camera_info_msg(f, cam, 0)) for n, cam in cams.items()]
+    pubs += [(node.create_publisher(f.cls("geometry_msgs/msg/TransformStamped"), f"/cameras/{n}/extrinsics",
+                                    LATCHED_QOS), extrinsics_msg(f, cam, 0)) for n, cam in cams.items()]
+    blobs = {n: node.create_publisher(f.cls("artrack_msgs/msg/Blob2DArray"), f"/cameras/{n}/blobs", RESULT_QOS)
+             for n in cams}
+    reseed = node.create_publisher(f.cls("artrack_msgs/msg/TrackedBody"), "/test/reseed", RESULT_QOS)
+    got: list = []
+    node.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), "/artrack/body",
+                             lambda m: got.append(body_from_msg(m)), RESULT_QOS)
+    for pub, msg in pubs:
+        pub.publish(msg)
+    log = tmp_path / "skeleton.log"
+    proc = subprocess.Popen([str(NODE_BIN / "skeleton"), "--ros-args", "-p", "camera_names:=[camA, camB]",
+                             "-p", "sync_timeout_s:=0.15", "-p", "fps:=10.0", "-p", "reseed_topic:=/test/reseed"],
+                            env=env, stdout=open(log, "wb"), stderr=subprocess.STDOUT)  # noqa: SIM115
+    try:
+        assert spin_until(executor, lambda: "camera rig complete" in log.read_text(), 30), log.read_text()
+        joints = body.joint_positions(pose_at("default", 0.0, body))
+        seed = BodyEstimate(FRAME_NS, list(body.joint_names), joints, [], [], STATUS_TRACKING, 1.0)
+        assert spin_until(executor, lambda: reseed.get_subscription_count() > 0, 20)
+        reseed.publish(body_msg(f, seed, "world", 7))
+        assert spin_until(executor, lambda: "estimator re-initialised from /test/reseed" in log.read_text(), 20), \
+            log.read_text()
+        for k in (2, 3, 4):
+            for n in cams:
+                blobs[n].publish(blob_array_msg(f, k * FRAME_NS, n, f"{n}_optical_frame", []))
+            spin_until(executor, lambda: False, 0.1)
+        assert spin_until(executor, lambda: len(got) >= 3, 20), log.read_text()
+        assert all(b.status == STATUS_TRACKING for b in got)
+        assert np.linalg.norm(got[0].joints - joints, axis=1).mean() < 0.05
+        assert proc.poll() is None
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+    assert "Traceback" not in log.read_text()

@@ -261,6 +261,42 @@ def test_status_initializing_lost_and_recovery(body, cameras):
     assert np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean() < 0.03
 
 
+@pytest.mark.parametrize("kind", ["baseline", "kinematic"])
+def test_reseed_from_another_estimators_joints_only_when_lost(body, cameras, kind):
+    """ALGORITHMS.md §4: a body from elsewhere (the loose-limbed node) re-initialises a lost
+    skeleton; while tracking it is ignored; bad joints are refused."""
+    cfg = {"tracking": {"lost_after_frames": 2}}
+    est = make_estimator(kind, body, cameras, cfg)
+    theta = _test_pose(body)
+    truth = body.joint_positions(theta)
+    with pytest.raises(InputError, match="reseed joints"):
+        est.reseed(stamp(0), truth[:5])
+    with pytest.raises(InputError, match="reseed joints"):
+        est.reseed(stamp(0), np.full_like(truth, np.nan))
+    # not started: taken; the next frame's blobs are tracked from that pose
+    rng = np.random.default_rng(3)
+    assert est.reseed(stamp(0), truth + rng.normal(0.0, 0.01, truth.shape))
+    assert est.predict(stamp(1)).status == STATUS_TRACKING
+    e = est.update(stamp(1), blobs_2d(body, cameras, theta))
+    assert e.status == STATUS_TRACKING
+    assert np.linalg.norm(e.joints - truth, axis=1).mean() < 0.03
+    # tracking: ignored
+    assert not est.reseed(stamp(1), truth + 0.5)
+    # lost (no blobs), then re-seeded at a new place: tracked there from the next frame
+    for k in (2, 3, 4):
+        e = est.update(stamp(k), {c.name: [] for c in cameras})
+    assert e.status == STATUS_LOST
+    moved = theta.copy()
+    moved[0:2] += [0.4, -0.3]
+    assert est.reseed(stamp(4), body.joint_positions(moved))
+    p = est.predict(stamp(5))  # the prediction (the priors of the 2-D trackers) is already there
+    assert p.status == STATUS_TRACKING
+    assert np.linalg.norm(p.joints - body.joint_positions(moved), axis=1).mean() < 0.05
+    e = est.update(stamp(5), blobs_2d(body, cameras, moved))
+    assert e.status == STATUS_TRACKING
+    assert np.linalg.norm(e.joints - body.joint_positions(moved), axis=1).mean() < 0.03
+
+
 def test_dynamic_estimator_tracks(body, cameras):
     est = make_estimator("dynamic", body, cameras, None)
     rng = np.random.default_rng(1)

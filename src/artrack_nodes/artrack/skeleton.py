@@ -781,6 +781,37 @@ class _Estimator:
             self._verify_facing(stamp_ns, obs)
         return self._estimate(stamp_ns)
 
+    def reseed(self, stamp_ns: int, joints: np.ndarray, sigma_m: float = 0.05) -> bool:
+        """Re-initialise from another estimator's body when this one is lost or has not started
+        (ALGORITHMS.md §4: the loose-limbed body "hands its poses to the skeleton"): the body model
+        fitted to the 15 output joints (``joints`` (J, 3) world m, order ``body.joint_names``,
+        isotropic ``sigma_m``) from the rest pose at four headings. Returns whether it was taken
+        (False while tracking). InputError for a wrong shape or non-finite joints."""
+        joints = np.asarray(joints, dtype=float)
+        if joints.shape != (len(self.body.joint_names), 3) or not np.all(np.isfinite(joints)):
+            raise InputError(f"skeleton: reseed joints must be {len(self.body.joint_names)} finite 3-D points, "
+                             f"got shape {joints.shape}")
+        if self.theta is not None and self.status != STATUS_LOST:
+            return False
+        info = np.eye(3) / sigma_m**2
+        targets = [PointTarget(int(k), pt, y, info)
+                   for k, pt, y in zip(self.body.joint_links, self.body.joint_points, joints, strict=True)]
+        rest_joints = self.body.joint_positions(self.kin.rest)
+        rest_p, _ = self.kin.poses(self.kin.rest)
+        best = None
+        for yaw in np.arange(4) * (np.pi / 2):
+            Rz = exp_so3(np.array([0.0, 0.0, yaw]))
+            root = joints.mean(axis=0) - Rz @ (rest_joints.mean(axis=0) - rest_p[0])
+            theta, cost = self._init_fit(targets, self._rest_at(root, yaw))
+            if best is None or cost < best[1]:
+                best = (theta, cost)
+        # never ahead of frames still to come (update() would take that for time going backwards)
+        stamp_ns = int(stamp_ns) if self.stamp_ns is None else min(int(stamp_ns), self.stamp_ns)
+        self._initialise(stamp_ns, best[0], {})
+        self._start_verification()
+        self.status, self.missed, self.stamp_ns = STATUS_TRACKING, 0, stamp_ns
+        return True
+
     # -- facing verification ----------------------------------------------------
     def _start_verification(self) -> None:
         self._verify_left = self.cfg.tracking.verify_frames
@@ -1065,6 +1096,10 @@ class BaselineEstimator(_Estimator):
         targets = self._blob_targets(obs)
         edges = getattr(self, "_edges", None)
         goals = LinkGoals.from_edges(edges, f.edge_sigma_px, f.edge_min_found) if edges is not None else None
+        if not targets and (goals is None or not len(goals.links)):
+            # Nothing observed: the pose coasts (a fit to the priors alone leaves the root free to wander).
+            self._set_pose(self.theta, self.cov_theta, self.poses, dt)
+            return
         theta, _, cov = fit_pose(
             self.body,
             self.theta,

@@ -9,8 +9,9 @@ frames, shouters + NBP) and publishes /artrack/loose_limbed/body (artrack_msgs/T
 mode=initialiser: infers only at start (until the skeleton has published a body that is not
 LOST) and whenever the skeleton's last body has status LOST — then it re-initialises from no
 prior pose. mode=estimator: tracks every frame, an estimator of its own.
-The skeleton does not yet read /artrack/loose_limbed/body (see the README: the hook belongs
-in the skeleton node).
+The skeleton reads /artrack/loose_limbed/body when its ``reseed_topic`` names it (graph:
+``--set loose_limbed=true --set reseed_topic=/artrack/loose_limbed/body``) and re-initialises
+from it when lost.
 """
 
 from __future__ import annotations

@@ -7,7 +7,9 @@ nodes; fused as soft constraints on the links, ALGORITHMS.md §2 "Fusion"). Once
 cameras have reported a frame (or, free-running, after sync_timeout_s) it publishes
 /artrack/body (the estimate at that frame) and /artrack/prediction (the body predicted
 for the next frame, which feedback_projection turns into 2-D priors and edge_features
-measures about).
+measures about). With ``reseed_topic`` set (e.g. /artrack/loose_limbed/body, the loose_limbed
+node's TRACKING bodies, ALGORITHMS.md §4) a lost or not yet started estimator is re-initialised
+from the 15 joints of the bodies arriving there.
 """
 
 from __future__ import annotations
@@ -16,12 +18,14 @@ import sys
 import time
 
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from artrack.body_model import load_body_model
 from artrack.edge_fusion import combine
 from artrack.errors import ArtrackError
-from artrack.messages import blobs_from_msg, body_msg, edge_stats_from_msg
+from artrack.messages import blobs_from_msg, body_from_msg, body_msg, edge_stats_from_msg
 from artrack.pipeline import SkeletonStage, load_pipeline_config
+from artrack.types import STATUS_TRACKING
 
 from .common import (
     BODY_TOPIC,
@@ -50,7 +54,12 @@ PARAMS = [
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
     ("skeleton_config", "", "estimator tunables YAML (empty: config/skeleton.yaml)"),
     ("edges", False, "also wait for and fuse every camera's edge statistics (edge_features nodes)"),
+    ("reseed_topic", "", "TrackedBody topic whose TRACKING bodies re-initialise a lost (or not yet started) "
+                         "estimator, e.g. /artrack/loose_limbed/body (empty: off)"),
 ]
+#: re-seed bodies: reliable, volatile (a restarted skeleton must not re-seed from stale bodies)
+RESEED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
 LIMITS = {"fps": (1.0, 1000.0), "sync_timeout_s": (0.0, 60.0), "lockstep_timeout_s": (0.0, 3600.0),
           "body_id": (0, 2**31 - 1)}
 RUNTIME = ("sync_timeout_s", "lockstep_timeout_s")  # read by flush() on every call
@@ -83,6 +92,8 @@ class SkeletonNode(Node):
             if self.edges:
                 self.create_subscription(f.cls("artrack_msgs/msg/LinkEdgeStatistics"),
                                          camera_topic(n, "edge_statistics"), self.on_edges, RESULT_QOS)
+        if p["reseed_topic"]:
+            self.create_subscription(body_cls, p["reseed_topic"], self.on_reseed, RESEED_QOS)
         self.create_timer(0.02, self.flush)
         self.watch = CameraWatch(self.names, float(p["fps"]))
         self.diag = NodeDiagnostics(self, update=self.watch.report(self))
@@ -93,6 +104,22 @@ class SkeletonNode(Node):
         self.stage = SkeletonStage(self.body, cameras, self.config)
         self.get_logger().info("camera rig complete")
         self.flush()
+
+    def on_reseed(self, msg) -> None:
+        """A body from another estimator: re-initialises ours if it is lost or has not started."""
+        if self.stage is None:
+            return
+        try:
+            other = body_from_msg(msg)
+            if other.status != STATUS_TRACKING:
+                return
+            taken = self.stage.estimator.reseed(other.stamp_ns, other.joints)
+        except (ValueError, AttributeError, ArtrackError) as exc:
+            self.get_logger().error(f"dropped re-seed body on {self.p['reseed_topic']}: {exc}")
+            self.diag.drop()
+            return
+        if taken:
+            self.get_logger().info(f"estimator re-initialised from {self.p['reseed_topic']} (frame {other.stamp_ns})")
 
     def on_blobs(self, msg) -> None:
         self._receive(msg, blobs_from_msg, "Blob2DArray", "blobs", self.pending)
