@@ -34,6 +34,7 @@ tracker); wall-clock times vary with the machine load. Run from the repository r
     .venv/bin/python bench/closed_loop.py                      # all scenes, 4 cameras, 320x240, 6 s
     .venv/bin/python bench/closed_loop.py --scenes default --cameras 4 2 1 --estimators baseline
     .venv/bin/python bench/closed_loop.py --scenes default --width 640 --height 480 --feedback on
+    .venv/bin/python bench/closed_loop.py --scenes default --estimators baseline --feedback on --seeds 1 2 3
 """
 
 from __future__ import annotations
@@ -203,8 +204,12 @@ def main() -> int:
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--duration", type=float, default=6.0, help="s (the default motion is 10 s long)")
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--seeds", nargs="+", type=int, default=None,
+                    help="several scene seeds: one row per seed plus a 'mean' row (MPJPE mean +- standard "
+                         "deviation; the closed loop is chaotic, single-seed differences of ~50 mm are noise)")
     ap.add_argument("--cache", default="/tmp/artrack_bench")
     args = ap.parse_args()
+    seeds = args.seeds or [args.seed]
     body = load_body_model()
     rows = []
     head = (f"{'scene':<11}{'cams':>4} {'estimator':<15}{'feedback':<9}{'MPJPE mm':>9}{'limbs mm':>9}{'tracked %':>10}"
@@ -212,16 +217,28 @@ def main() -> int:
     print(head)
     for name in args.scenes:
         for n_cam in args.cameras:
-            path = scene_bag(name, n_cam, args, body)
+            paths = {sd: scene_bag(name, n_cam, argparse.Namespace(**{**vars(args), "seed": sd}), body)
+                     for sd in seeds}
             for est in args.estimators:
                 for fb in args.feedback:
-                    r = run(path, name, est, fb == "on", body)
-                    rows.append({"scene": name, "cameras": n_cam, "estimator": est, "feedback": fb, **r})
-                    print(f"{name:<11}{n_cam:>4} {est:<15}{fb:<9}{r['mpjpe_mm']:9.1f}{r['limbs_mm']:9.1f}"
-                          f"{100 * r['tracked']:10.0f}"
-                          f"  {claim_text(r):<24}{r['fps']:6.1f}{r.get('blobs_2d_ms', 0):9.1f}"
-                          f"{r.get('edges_ms', 0):9.1f}"
-                          f"{r.get('skeleton_3d_ms', 0):8.1f}{r.get('projection_ms', 0):8.1f}", flush=True)
+                    mpjpe = []
+                    for sd, path in paths.items():
+                        r = run(path, name, est, fb == "on", body)
+                        rows.append({"scene": name, "cameras": n_cam, "estimator": est, "feedback": fb,
+                                     "seed": sd, **r})
+                        mpjpe.append(r["mpjpe_mm"])
+                        tag = "" if len(seeds) == 1 else f" s{sd}"
+                        print(f"{name:<11}{n_cam:>4} {est + tag:<15}{fb:<9}{r['mpjpe_mm']:9.1f}{r['limbs_mm']:9.1f}"
+                              f"{100 * r['tracked']:10.0f}"
+                              f"  {claim_text(r):<24}{r['fps']:6.1f}{r.get('blobs_2d_ms', 0):9.1f}"
+                              f"{r.get('edges_ms', 0):9.1f}"
+                              f"{r.get('skeleton_3d_ms', 0):8.1f}{r.get('projection_ms', 0):8.1f}", flush=True)
+                    if len(seeds) > 1:
+                        m, sdv = float(np.nanmean(mpjpe)), float(np.nanstd(mpjpe))
+                        rows.append({"scene": name, "cameras": n_cam, "estimator": est, "feedback": fb,
+                                     "seed": "mean", "mpjpe_mm": m, "mpjpe_mm_sd": sdv})
+                        print(f"{name:<11}{n_cam:>4} {est + ' mean':<15}{fb:<9}{m:9.1f}  +- {sdv:.1f} mm over "
+                              f"{len(seeds)} seeds", flush=True)
     print(json.dumps(rows))
     return 0
 
