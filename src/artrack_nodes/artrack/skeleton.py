@@ -796,18 +796,11 @@ class _Estimator:
         info = np.eye(3) / sigma_m**2
         targets = [PointTarget(int(k), pt, y, info)
                    for k, pt, y in zip(self.body.joint_links, self.body.joint_points, joints, strict=True)]
-        rest_joints = self.body.joint_positions(self.kin.rest)
-        rest_p, _ = self.kin.poses(self.kin.rest)
-        best = None
-        for yaw in np.arange(4) * (np.pi / 2):
-            Rz = exp_so3(np.array([0.0, 0.0, yaw]))
-            root = joints.mean(axis=0) - Rz @ (rest_joints.mean(axis=0) - rest_p[0])
-            theta, cost = self._init_fit(targets, self._rest_at(root, yaw))
-            if best is None or cost < best[1]:
-                best = (theta, cost)
+        theta = self._fit_four_headings(targets, joints.mean(axis=0),
+                                        self.body.joint_positions(self.kin.rest).mean(axis=0))
         # never ahead of frames still to come (update() would take that for time going backwards)
         stamp_ns = int(stamp_ns) if self.stamp_ns is None else min(int(stamp_ns), self.stamp_ns)
-        self._initialise(stamp_ns, best[0], {})
+        self._initialise(stamp_ns, theta, {})
         self._start_verification()
         self.status, self.missed, self.stamp_ns = STATUS_TRACKING, 0, stamp_ns
         return True
@@ -911,16 +904,22 @@ class _Estimator:
 
     def _init_from_labelled(self, obs: Mapping[str, Blob3D]) -> np.ndarray | None:
         """Multi-start fit of the rest pose (four headings) to labelled 3-D blobs."""
-        targets = self._blob_targets(obs)
-        centre = np.mean([b.mean for b in obs.values()], axis=0)
         rest_p, rest_R = self.kin.poses(self.kin.rest)
         rest_centre = np.mean(
             self.kin.blob_points(rest_p, rest_R)[[self.kin.blob_index[k] for k in obs]], axis=0
         )
+        centre = np.mean([b.mean for b in obs.values()], axis=0)
+        return self._fit_four_headings(self._blob_targets(obs), centre, rest_centre)
+
+    def _fit_four_headings(self, targets: list[PointTarget], centre: np.ndarray, rest_centre: np.ndarray
+                           ) -> np.ndarray:
+        """The best of four fits of the rest pose to ``targets``, turned to each heading (0, 90, 180,
+        270 deg) with the rest-pose point ``rest_centre`` (world m) placed at ``centre``."""
+        rest_root = self.kin.rest[0:3]
         best = None
         for yaw in np.arange(4) * (np.pi / 2):
             Rz = exp_so3(np.array([0.0, 0.0, yaw]))
-            root = centre - Rz @ (rest_centre - rest_p[0])
+            root = centre - Rz @ (rest_centre - rest_root)
             theta, cost = self._init_fit(targets, self._rest_at(root, yaw))
             if best is None or cost < best[1]:
                 best = (theta, cost)
