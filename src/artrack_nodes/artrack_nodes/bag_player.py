@@ -26,7 +26,6 @@ from .common import (
     camera_topic,
     declare_all,
     msgs,
-    param_limits_help,
     run_node,
 )
 
@@ -185,7 +184,7 @@ class BagPlayerNode(Node):
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(BagPlayerNode, __doc__ + "\n" + param_limits_help(LIMITS, RUNTIME), PARAMS, args))
+    sys.exit(run_node(BagPlayerNode, __doc__, PARAMS, args, LIMITS, RUNTIME))
 
 
 if __name__ == "__main__":

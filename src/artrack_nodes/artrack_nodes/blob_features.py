@@ -27,7 +27,6 @@ from .common import (
     camera_topic,
     declare_all,
     msgs,
-    param_limits_help,
     run_node,
 )
 
@@ -104,7 +103,7 @@ class BlobFeaturesNode(Node):
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(BlobFeaturesNode, __doc__ + "\n" + param_limits_help(LIMITS, RUNTIME), PARAMS, args))
+    sys.exit(run_node(BlobFeaturesNode, __doc__, PARAMS, args, LIMITS, RUNTIME))
 
 
 if __name__ == "__main__":

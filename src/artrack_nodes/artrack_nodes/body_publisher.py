@@ -37,7 +37,6 @@ from .common import (
     NodeDiagnostics,
     declare_all,
     msgs,
-    param_limits_help,
     run_node,
 )
 
@@ -166,7 +165,7 @@ class BodyPublisherNode(Node):
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(BodyPublisherNode, __doc__ + "\n" + param_limits_help(LIMITS, set(RUNTIME)), PARAMS, args))
+    sys.exit(run_node(BodyPublisherNode, __doc__, PARAMS, args, LIMITS, RUNTIME))
 
 
 if __name__ == "__main__":

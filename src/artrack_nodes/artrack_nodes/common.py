@@ -10,7 +10,7 @@ import os
 import sys
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 import rclpy
@@ -103,10 +103,15 @@ def print_help(prog: str, doc: str, params: list[tuple[str, Any, str]]) -> None:
         print(f"  {name} ({default!r}): {desc}")
 
 
-def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, str]], args=None) -> int:
-    """main() for every node: --help, init, spin, clean shutdown. Returns the exit code."""
+def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, str]], args=None,
+             limits: dict[str, tuple] | None = None, runtime: Iterable[str] | None = None) -> int:
+    """main() for every node: --help, init, spin, clean shutdown. Returns the exit code.
+    ``limits`` / ``runtime`` (the node's declared ranges and run-time parameters, as given to
+    :func:`declare_all`): when either is given, --help lists them after ``doc``."""
     argv = list(sys.argv if args is None else args)
     if any(a in ("-h", "--help") for a in argv[1:]):
+        if limits is not None or runtime is not None:
+            doc = doc + "\n" + param_limits_help(limits or {}, runtime or ())
         print_help(os.path.basename(argv[0]), doc, params)
         return 0
     rclpy.init(args=argv)
@@ -175,7 +180,7 @@ def declare_all(node: Node, params: Params, limits: dict[str, tuple] | None = No
     return values
 
 
-def param_limits_help(limits: dict[str, tuple], runtime: set[str] | dict) -> str:
+def param_limits_help(limits: dict[str, tuple], runtime: Iterable[str]) -> str:
     """A --help paragraph on ranges and run-time changeable parameters."""
     ranges = ", ".join(f"{k} in [{lo}, {hi}]" for k, (lo, hi) in limits.items())
     return (f"ranges: {ranges or '-'}\nchangeable at run time (ros2 param set): "

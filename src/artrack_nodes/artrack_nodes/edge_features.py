@@ -35,7 +35,6 @@ from .common import (
     camera_topic,
     declare_all,
     msgs,
-    param_limits_help,
     run_node,
 )
 
@@ -121,7 +120,7 @@ class EdgeFeaturesNode(Node):
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(EdgeFeaturesNode, __doc__ + "\n" + param_limits_help(LIMITS, RUNTIME), PARAMS, args))
+    sys.exit(run_node(EdgeFeaturesNode, __doc__, PARAMS, args, LIMITS, RUNTIME))
 
 
 if __name__ == "__main__":

@@ -36,7 +36,6 @@ from .common import (
     camera_topic,
     declare_all,
     msgs,
-    param_limits_help,
     run_node,
 )
 
@@ -139,7 +138,7 @@ class LooseLimbedNode(Node):
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(LooseLimbedNode, __doc__ + "\n" + param_limits_help(LIMITS, set(RUNTIME)), PARAMS, args))
+    sys.exit(run_node(LooseLimbedNode, __doc__, PARAMS, args, LIMITS, RUNTIME))
 
 
 if __name__ == "__main__":

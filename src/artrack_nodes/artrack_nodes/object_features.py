@@ -22,7 +22,6 @@ from .common import (
     camera_topic,
     declare_all,
     msgs,
-    param_limits_help,
     run_node,
 )
 
@@ -68,7 +67,7 @@ class ObjectFeaturesNode(Node):
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(ObjectFeaturesNode, __doc__ + "\n" + param_limits_help(LIMITS, set(RUNTIME)), PARAMS, args))
+    sys.exit(run_node(ObjectFeaturesNode, __doc__, PARAMS, args, LIMITS, RUNTIME))
 
 
 if __name__ == "__main__":
