@@ -158,6 +158,16 @@ class ParticleFilter:
         self.gamma = np.repeat(g0[None], n, axis=0)
         self.log_w = np.zeros(n)
         self._point_sigma = np.full(self.manifold.P, self.config.sigma_point)
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Evaluate the likelihood once on dummy points (no random numbers drawn). The first
+        evaluation of the (particles x capsules x points) arrays otherwise pays for fresh memory
+        pages (~0.5 s; the allocator then reuses its heap), so every frame costs the same."""
+        full = self.manifold.full_theta(self.theta)
+        z = np.linspace(-1.0, 1.0, 3 * self.config.n_points).reshape(-1, 3) + full[0, :3]
+        eye = full[0, :3] + np.array([3.0, 0.0, 0.0])
+        self.skin.log_likelihood(full, z, eye, self.config.likelihood_sigma, self.config.likelihood_tau**2)
 
     def _moves(self, link: int) -> bool:
         j = link

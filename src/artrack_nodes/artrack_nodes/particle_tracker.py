@@ -27,6 +27,7 @@ from artrack.errors import ArtrackError, InputError
 from artrack.messages import body_msg, ns_from_time, points_from_pointcloud_msg, stick_from_pose_msg
 from artrack.particles import ParticleConfig, ParticleFilter, Stick2D, Stick3D, gamma_on_stick
 from artrack.pointcloud import crop_box, workspace_box, world_from_camera_points
+from artrack.realtime import keep_freed_memory
 from artrack.stick_scene import holding_pose
 
 from .common import (
@@ -200,6 +201,7 @@ class ParticleTrackerNode(Node):
 
 
 def main(args=None) -> None:
+    keep_freed_memory()  # the same cost every frame (artrack/realtime.py)
     sys.exit(run_node(ParticleTrackerNode, __doc__, PARAMS, args, LIMITS, RUNTIME))
 
 
