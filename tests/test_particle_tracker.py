@@ -125,3 +125,37 @@ def test_particle_tracker_and_object_features_over_dds(env, probe, tmp_path):
         assert abs((np.asarray(s.a) - uv[0]) @ n) < 3.0 and abs((np.asarray(s.b) - uv[0]) @ n) < 3.0
     text = all_logs()
     assert "'z'" in text and "Traceback" not in text
+
+
+def test_particle_tracker_beside_the_skeleton_in_the_launched_graph(env, tmp_path):
+    """config/graph.yaml with particles=true on a stick scene bag (`artrack synth --motion
+    stick_side`): the launcher starts particle_tracker beside the blob tracker, skeleton and
+    projection; the player lingers until the particle tracker has caught up (player_linger_for);
+    the recorder gets both trackers' bodies for every frame, the particle tracker's within 4 cm
+    of the ground truth."""
+    from conftest import REPO, run_artrack
+
+    from artrack.bags import read_body_topic
+    from artrack.evaluation import load_truth
+
+    scene = tmp_path / "stick.mcap"
+    run_artrack(env, "synth", "--motion", "stick_side", "--width", "320", "--height", "240", "--fps", "15",
+                "--duration", "0.8", "--seed", "1", "--out", str(scene), "--quiet")
+    rec = tmp_path / "graph"
+    proc = subprocess.run(
+        [str(NODE_BIN / "artrack"), "launch", "config/graph.yaml", "--set", f"bag={scene}", "--set", f"out={rec}",
+         "--set", "cameras=[rgbd]", "--set", "fps=15.0", "--set", "particles=true",
+         "--set", "player_extra_topics=[/cameras/rgbd/points, /artrack/stick]", "--set", "player_linger_s=200.0",
+         "--set", "player_linger_for=[/artrack/particles/body]",
+         "--log-dir", str(tmp_path / "logs"), "--timeout", "240"],
+        env=env, cwd=REPO, capture_output=True, text=True, timeout=300)
+    logs = "\n".join(p.read_text(errors="replace")[-2000:] for p in sorted((tmp_path / "logs").glob("*.log")))
+    assert proc.returncode == 0, f"launch failed ({proc.returncode}):\n{proc.stderr}\n{logs}"
+    truth = load_truth(scene)
+    skeleton = read_body_topic(rec, "/artrack/body")
+    particles = read_body_topic(rec, "/artrack/particles/body")
+    assert list(skeleton.stamps) == list(truth.stamps), "the skeleton estimates every frame beside the particles"
+    assert list(particles.stamps) == list(truth.stamps), logs
+    err = np.linalg.norm(particles.joints - truth.joints, axis=2).mean(axis=1)
+    assert err.max() < 0.04, err
+    assert "Traceback" not in logs

@@ -44,6 +44,8 @@ PARAMS = [
                                  "topics before starting"),
     ("extra_topics", [""], "further per-frame topics to replay with each frame's images, matched by stamp "
                            "(e.g. /cameras/rgbd/points, /artrack/stick); empty: none"),
+    ("linger_for", [""], "TrackedBody topics of slower estimators (e.g. /artrack/particles/body): after the last "
+                         "frame, end as soon as each has published a body for it (at most linger_s); empty: none"),
 ]
 LIMITS = {"rate": (0.01, 100.0), "start_timeout_s": (0.0, 3600.0), "frame_timeout_s": (0.0, 3600.0),
           "max_frames": (0, 2**31 - 1), "linger_s": (0.0, 3600.0)}
@@ -70,6 +72,11 @@ class BagPlayerNode(Node):
         self.pubs = CameraPublishers(self, cameras, reliable_images=bool(p["lockstep"]))
         self.extra = self._load_extra([t for t in p["extra_topics"] if t])
         self.create_subscription(msgs().cls("artrack_msgs/msg/TrackedBody"), BODY_TOPIC, self.on_body, RESULT_QOS)
+        self.linger_for: dict[str, set[int]] = {t: set() for t in p["linger_for"] if t}
+        for t in self.linger_for:
+            self.create_subscription(msgs().cls("artrack_msgs/msg/TrackedBody"), t,
+                                     lambda m, t=t: self.linger_for[t].add(ns_from_time(m.header.stamp)), RESULT_QOS)
+        self.last_stamp: int | None = None
         self.lockstep = bool(p["lockstep"])
         self.state = "wait_graph"
         self.t_state = time.monotonic()
@@ -161,6 +168,7 @@ class BagPlayerNode(Node):
                 pub.publish(data)  # serialised CDR, as recorded
             self.pubs.publish_images(stamp, {n: images[n] for n in self.names if n in images})
             self.sent += 1
+            self.last_stamp = stamp
             if self.t_first_sent is None:
                 self.t_first_sent = now
             if self.lockstep:
@@ -168,9 +176,14 @@ class BagPlayerNode(Node):
             elif not self._advance():
                 self.state, self.t_state = "linger", now
             return
-        if self.state == "linger" and now - self.t_state > float(self.p["linger_s"]):
-            self.get_logger().info(f"done: {self.sent} frames; {self._throughput()}")
-            raise SystemExit(0)
+        if self.state == "linger":
+            caught_up = bool(self.linger_for) and all(self.last_stamp in seen for seen in self.linger_for.values())
+            if caught_up or now - self.t_state > float(self.p["linger_s"]):
+                late = [t for t, seen in self.linger_for.items() if self.last_stamp not in seen]
+                if late:
+                    self.get_logger().warning(f"linger_s over before {', '.join(late)} published the last frame")
+                self.get_logger().info(f"done: {self.sent} frames; {self._throughput()}")
+                raise SystemExit(0)
 
 
     def _throughput(self) -> str:
