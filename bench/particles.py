@@ -115,7 +115,7 @@ def run_sequence(task: tuple) -> list[dict]:
             rec["capped"].append(st.kkb_capped_share)
         print(f"  {motion} seed {seed} {prior}: marker {np.mean(rec['marker_m']) * 100:.2f} cm, "
               f"{np.mean(rec['cpu_s']):.3f} s/frame", file=sys.stderr, flush=True)
-        rec.update(n_particles=n_particles, fps=fps)
+        rec.update(n_particles=n_particles, fps=fps, overrides=overrides)
         if prior == "stick2d":
             rec.update(stick2d_source=stick2d_source,
                        stick2d_detected=sum(x is not None for x in sticks2d[1:]) / max(1, len(frames) - 1),
@@ -180,6 +180,8 @@ def main() -> None:
     ap.add_argument("--stick2d-source", default="detector", choices=["detector", "projection"],
                     help="p_stick2d's stick image: the 2-D detector on the rendered colour images (default) or "
                          "the true ends projected plus 1 px noise")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a ParticleConfig field for every prior (e.g. likelihood_sigma=0.03)")
     ap.add_argument("--quick", action="store_true", help="smoke run: 1 seed, 1 s per motion, 200 particles")
     ap.add_argument("--records", default=None, help="append every sequence's record (JSON lines) to this file")
     ap.add_argument("--summarise", default=None, metavar="RECORDS",
@@ -193,7 +195,15 @@ def main() -> None:
     if args.seeds < 1 or args.particles < 1 or args.fps <= 0 or (args.duration is not None and args.duration <= 0):
         print("bench/particles.py: --seeds, --particles, --fps and --duration must be positive", file=sys.stderr)
         sys.exit(1)
-    tasks = [(m, s, args.priors, args.particles, args.fps, args.duration, {}, args.records, args.stick2d_source)
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key not in ParticleConfig.__dataclass_fields__ or not value:
+            print(f"bench/particles.py: --set {item}: expected FIELD=VALUE with a ParticleConfig field", file=sys.stderr)
+            sys.exit(1)
+        overrides[key] = type(getattr(ParticleConfig(), key))(value)
+    tasks = [(m, s, args.priors, args.particles, args.fps, args.duration, overrides, args.records,
+              args.stick2d_source)
              for s in range(args.seeds) for m in args.motions]
     t0 = time.perf_counter()
     if args.jobs > 1:

@@ -98,7 +98,7 @@ class ParticleConfig:
     sigma_gamma: float = 0.01         # per frame, γ diffusion (eq. (7))
     kkb_threshold: float = 0.02       # m, T_E of eq. (6)
     kkb_max_rejections: int = 5000
-    likelihood_sigma: float = 0.02    # m, σ of eq. (9)
+    likelihood_sigma: float = 0.03    # m, σ of eq. (9) (0.02: weights collapse onto 1-8 particles; see README)
     likelihood_tau: float = 0.08      # m, truncation distance (τ = tau² in eq. (9))
     n_points: int = 400               # points used per frame (random subset)
     static_explained: float = 0.01    # m, points this close to the static body (legs, pelvis) are dropped
