@@ -22,6 +22,17 @@ training set — rendered with seeds 0.. (room, clothes, noise), 4 ring cameras.
    part log-likelihood below −20; the truth scores ≈ −11) it re-initialises from the shouters;
    frames until the MPJPE is back under 200 mm, with and without the detection.
 4. Timing per BP iteration / per frame and per stage (wall clock, this machine).
+5. Recovery in the closed loop (the issue's acceptance item): the offline form of the live graph
+   (``pipeline.ClosedLoopPipeline``: blob trackers, baseline skeleton, feedback) on a synthetic
+   scene (``synth.SceneConfig``, 320x240, ``default`` motion) where every camera sees only the empty
+   room for 1 s (``artrack synth --blackout 2.5:1.0``), with and without the loose_limbed
+   initialiser (``loose_limbed_stage.InitialiserPolicy``, as the node: it infers while the
+   skeleton's last body is LOST; its TRACKING bodies re-seed the skeleton before the next frame,
+   ``estimator.reseed`` — the graph's ``reseed_topic``; in the live graph the body may arrive a
+   frame or more later). Two backgrounds: the room empty for the first 1.5 s (every background
+   model clean), and the person in view from frame 0 (background models seeded with the person:
+   ghosts). Frames from the blackout's end until the skeleton is TRACKING with MPJPE under
+   max(2 x its MPJPE over the 0.5 s before the blackout, 200 mm), and MPJPE before / after.
 
 Ends with one JSON line of the headline figures. Run from the repository root::
 
@@ -61,7 +72,8 @@ from artrack.motion import pose_at  # noqa: E402
 from artrack.part_likelihood import PartLikelihood, view_evidence  # noqa: E402
 from artrack.part_potentials import default_model_path, load_model, save_model, train_model, training_motion  # noqa: E402
 from artrack.shouters import Shouter, ShouterConfig  # noqa: E402
-from artrack.synth import Renderer, default_rig  # noqa: E402
+from artrack.synth import Renderer, SceneConfig, default_rig, generate_scene, scene_cameras  # noqa: E402
+from artrack.types import STATUS_LOST, STATUS_TRACKING  # noqa: E402
 
 TRAIN_MOTIONS = ("default", "line", "rotation")
 TRAIN_SEEDS = (1000, 1001, 1002)
@@ -187,6 +199,91 @@ def recovery(args, model, body, geo, cams, lik, results: dict) -> None:
     results["recovery_frames_to_regain"] = regain
 
 
+LOOP_SIZE = (320, 240)
+LOOP_BLACKOUT = (2.5, 1.0)  #: s: start, length
+LOOP_AFTER_S = 1.0          #: scene time after the blackout
+LOOP_REGAIN = 10            #: the acceptance: tracking regained within this many frames
+
+
+def _loop_run(body, model, cfg: SceneConfig, with_ll: bool, relocalise: bool, iterations: int, particles: int,
+              seed: int, min_score: float):
+    """One closed-loop run of a blackout scene, ordered as the lockstep graph: the loose_limbed node infers
+    on frame t if the skeleton's body of t-1 was LOST (InitialiserPolicy); its TRACKING body of t re-seeds
+    the skeleton before the skeleton estimates t. Returns (status (N,), MPJPE mm (N,; inf while nothing is
+    estimated), frames at which the skeleton was re-seeded, loose-limbed seconds)."""
+    from artrack.loose_limbed_stage import InitialiserPolicy, LooseLimbedStage, StageConfig
+    from artrack.pipeline import ClosedLoopPipeline, load_pipeline_config
+
+    cams = scene_cameras(cfg)
+    pipe = ClosedLoopPipeline(body, cams, load_pipeline_config())
+    pipe.skeleton.estimator.cfg.tracking.relocalise_from_blobs = relocalise
+    stage = LooseLimbedStage(body, pipe.cameras, model, StageConfig(init_iterations=iterations, n_particles=particles,
+                                                                   seed=seed, min_score=min_score)) if with_ll else None
+    policy = InitialiserPolicy()
+    status, err, reseeds, t_ll = [], [], [], 0.0
+    for fr in generate_scene(cfg, body, cams):
+        if stage is not None:
+            t0 = time.perf_counter()
+            ll = policy.step(stage, fr.stamp_ns, fr.images)
+            t_ll += time.perf_counter() - t0
+            taken = ll is not None and ll.status == STATUS_TRACKING
+            if taken and pipe.skeleton.estimator.reseed(ll.stamp_ns, ll.joints):
+                reseeds.append(fr.index)
+        est = pipe.step(fr.stamp_ns, fr.images).estimate
+        policy.skeleton(est.status)
+        status.append(est.status)
+        ok = fr.joints is not None and np.isfinite(est.joints).all()
+        err.append(float(np.linalg.norm(est.joints - fr.joints, axis=1).mean() * 1e3) if ok else np.inf)
+    return np.array(status), np.array(err), reseeds, t_ll
+
+
+def loop_recovery(args, model, body, results: dict) -> None:
+    """Section 5: closed-loop recovery from a 1 s blackout, with and without the loose_limbed initialiser."""
+    fps = FPS
+    first, last = int(round(LOOP_BLACKOUT[0] * fps)), int(round(sum(LOOP_BLACKOUT) * fps))
+    rows, out = [], {}
+    for bg, empty_s in (("clean", 1.5), ("ghosts", 0.0)):
+        for s in range(args.loop_seeds):
+            cfg = SceneConfig(width=LOOP_SIZE[0], height=LOOP_SIZE[1], fps=fps, seed=3 + s, empty_s=empty_s,
+                              duration_s=sum(LOOP_BLACKOUT) + LOOP_AFTER_S, blackout=LOOP_BLACKOUT)
+            variants = (("without", False, True), ("with loose_limbed", True, True),
+                        ("LL only (no relocal.)", True, False))
+            for name, with_ll, relocalise in variants:
+                t0 = time.perf_counter()
+                st, err, reseeds, t_ll = _loop_run(body, model, cfg, with_ll, relocalise, args.iterations,
+                                                   args.loop_particles, s, args.loop_min_score)
+                pre = float(np.mean(err[first - 15:first]))
+                bound = max(2.0 * pre, 200.0)
+                ok = [i - last for i in range(last, len(st)) if st[i] == STATUS_TRACKING and err[i] < bound]
+                regain = ok[0] if ok else None
+                lost = [i for i in range(first, len(st)) if st[i] == STATUS_LOST]
+                row = {"background": bg, "seed": cfg.seed, "variant": name, "pre_mm": round(pre, 1),
+                       "bound_mm": round(bound, 1), "lost_at": lost[0] if lost else None,
+                       "frames_to_regain": regain, "after_mm": round(float(np.mean(err[last:last + LOOP_REGAIN])), 1),
+                       "end_mm": round(float(np.mean(err[-10:])), 1), "reseeded_at": reseeds,
+                       "ll_s": round(t_ll, 1), "run_s": round(time.perf_counter() - t0, 1)}
+                rows.append(row)
+                print(f"loop {bg} seed {cfg.seed} {name}: regained after {regain} frames; MPJPE per frame from "
+                      f"the blackout's end {np.round(err[last:]).tolist()}", file=sys.stderr, flush=True)
+    print(f"\n5. Closed-loop recovery: every camera sees the empty room {LOOP_BLACKOUT[0]}-{sum(LOOP_BLACKOUT)} s "
+          f"(frames {first}-{last - 1}), {LOOP_SIZE[0]}x{LOOP_SIZE[1]}, baseline skeleton; loose_limbed "
+          f"{args.iterations} iterations x {args.loop_particles} particles, min_score {args.loop_min_score:g}")
+    print("(LL only: the skeleton's own re-initialisation from blobs off, tracking.relocalise_from_blobs false)")
+    print("background  seed  variant                pre mm  bound mm  LOST at  frames to regain  after mm (10 fr)"
+          "  last 10 fr mm  re-seeded at  LL s")
+    for r in rows:
+        print(f"{r['background']:10s}  {r['seed']:4d}  {r['variant']:21s}  {r['pre_mm']:6.1f}  {r['bound_mm']:8.1f}  "
+              f"{r['lost_at']!s:>7s}  {r['frames_to_regain']!s:>16s}  {r['after_mm']:15.1f}  {r['end_mm']:13.1f}  "
+              f"{str(r['reseeded_at']):>12s}  {r['ll_s']:4.1f}")
+    for r in rows:
+        key = {"without": "no_ll", "with loose_limbed": "ll"}.get(r["variant"], "ll_only")
+        out.setdefault(f"{r['background']}_{key}", []).append(
+            {k: r[k] for k in ("seed", "pre_mm", "frames_to_regain", "after_mm", "end_mm", "lost_at")})
+    results["loop_recovery"] = out
+    results["loop_recovery_setup"] = {"iterations": args.iterations, "particles": args.loop_particles,
+                                      "min_score": args.loop_min_score, "regain_frames_target": LOOP_REGAIN}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="smoke run: 2 init scenes, 2 seeds x 8 frames")
@@ -202,6 +299,11 @@ def main() -> int:
     ap.add_argument("--noise", type=float, default=6.0, help="extra pixel noise sigma of the tracking scenes")
     ap.add_argument("--skip-apf", action="store_true", help="leave out the annealed filter")
     ap.add_argument("--recovery-seeds", type=int, default=2, help="seeds of the recovery run (section 3)")
+    ap.add_argument("--loop-seeds", type=int, default=1, help="scene seeds of the closed-loop recovery (section 5; "
+                    "0: skip)")
+    ap.add_argument("--loop-particles", type=int, default=100, help="loose_limbed node particles in section 5")
+    ap.add_argument("--loop-min-score", type=float, default=-17.0,
+                    help="loose_limbed node min_score in section 5 (the node's default; -1000: no gate)")
     ap.add_argument("--out", type=Path, default=Path("out/loose_limbed"))
     args = ap.parse_args()
     path = args.model or default_model_path()
@@ -229,6 +331,8 @@ def main() -> int:
         tracking(args, model, body, geo, cams, lik, results)
     if args.recovery_seeds > 0:
         recovery(args, model, body, geo, cams, lik, results)
+    if args.loop_seeds > 0:
+        loop_recovery(args, model, body, results)
     print(f"plots: {args.out / 'init_per_iteration.png'}, {args.out / 'tracking_per_frame.png'}")
     print(json.dumps({"loose_limbed": results}))
     return 0

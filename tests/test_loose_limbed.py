@@ -351,6 +351,38 @@ def test_stage_seeds_the_background_then_finds_the_body(body, model):
         stage.step(6, {"cam01": frame["cam01"]})
 
 
+def test_initialiser_policy_infers_at_start_and_while_the_skeleton_is_lost():
+    """InitialiserPolicy (the loose_limbed node's mode=initialiser): infers until its first estimate,
+    then only after the skeleton's last body was LOST, re-initialising on the first such frame."""
+    from artrack.loose_limbed_stage import InitialiserPolicy
+    from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING
+
+    class Stage:  # records what the policy asks of the stage
+        ready, calls = True, []
+
+        def reinitialise(self):
+            self.calls.append("reinit")
+
+        def step(self, stamp, images):
+            self.calls.append(stamp)
+            return None if stamp == 1 else stamp
+
+        def step_background(self, images):
+            self.calls.append("bg")
+
+    stage, policy = Stage(), InitialiserPolicy()
+    assert policy.infer() and policy.step(stage, 1, {}) is None  # nothing found yet: still initialising
+    policy.skeleton(STATUS_INITIALIZING)
+    assert policy.step(stage, 2, {}) == 2 and stage.calls == ["reinit", 1, "reinit", 2]
+    assert not policy.skeleton(STATUS_TRACKING) and not policy.infer() and policy.step(stage, 3, {}) is None
+    assert policy.skeleton(STATUS_LOST)  # newly lost: say so once
+    assert policy.infer() and policy.step(stage, 4, {}) == 4 and stage.calls[-2:] == ["reinit", 4]
+    assert not policy.skeleton(STATUS_LOST) and policy.step(stage, 5, {}) == 5 and stage.calls[-1] == 5  # tracks on
+    policy.skeleton(STATUS_TRACKING)
+    assert not policy.infer()
+    assert InitialiserPolicy(estimator=True).infer()
+
+
 def test_tracker_detects_loss_and_recovers_from_the_shouters(model, body, geo):
     from artrack.loose_limbed import LooseLimbedTracker, TrackerConfig
 

@@ -262,6 +262,22 @@ def test_status_initializing_lost_and_recovery(body, cameras):
 
 
 @pytest.mark.parametrize("kind", ["baseline", "kinematic"])
+def test_lost_without_relocalise_from_blobs_waits_for_a_reseed(body, cameras, kind):
+    """tracking.relocalise_from_blobs false: the first start still uses the blobs, but once LOST the
+    estimator stays LOST with every label in view until a re-seed restarts it."""
+    est = make_estimator(kind, body, cameras, {"tracking": {"lost_after_frames": 2, "relocalise_from_blobs": False}})
+    theta = _test_pose(body)
+    assert est.update(stamp(0), blobs_2d(body, cameras, theta)).status == STATUS_TRACKING
+    assert [est.update(stamp(k), {c.name: [] for c in cameras}).status for k in (1, 2)] == [STATUS_TRACKING,
+                                                                                             STATUS_LOST]
+    assert [est.update(stamp(k), blobs_2d(body, cameras, theta)).status for k in (3, 4)] == [STATUS_LOST] * 2
+    assert est.reseed(stamp(4), body.joint_positions(theta))
+    e = est.update(stamp(5), blobs_2d(body, cameras, theta))
+    assert e.status == STATUS_TRACKING
+    assert np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean() < 0.03
+
+
+@pytest.mark.parametrize("kind", ["baseline", "kinematic"])
 def test_reseed_from_another_estimators_joints_only_when_lost(body, cameras, kind):
     """ALGORITHMS.md §4: a body from elsewhere (the loose-limbed node) re-initialises a lost
     skeleton; while tracking it is ignored; bad joints are refused."""

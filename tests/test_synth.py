@@ -215,3 +215,22 @@ def test_empty_start_shows_the_room_then_the_person(body, tmp_path):
     scene = read_scene(path)
     assert scene.n_frames == 5
     assert list(scene.truth.stamps) == [f.stamp_ns for f in frames[2:]]
+
+
+def test_blackout_shows_the_empty_room_and_keeps_the_truth(body):
+    """SceneConfig.blackout (artrack synth --blackout START:SECONDS): every camera sees the empty room
+    in [START, START + SECONDS) while the person goes on moving and the ground truth is kept."""
+    from artrack.synth import scene_cameras
+
+    cfg = SceneConfig(width=160, height=120, fps=10.0, duration_s=0.5, seed=4, motion="line", blackout=(0.2, 0.2))
+    assert [cfg.blacked_out(i) for i in range(5)] == [False, False, True, True, False]
+    frames = list(generate_scene(cfg, body))
+    plain = list(generate_scene(SceneConfig(width=160, height=120, fps=10.0, duration_s=0.5, seed=4, motion="line"),
+                                body))
+    room = Renderer(body, scene_cameras(cfg), cfg.seed).render(None, (), 0.0)
+    for f, p in zip(frames, plain, strict=True):
+        np.testing.assert_allclose(f.joints, p.joints)  # the truth goes on through the blackout
+        same = all(np.array_equal(f.images[c], p.images[c]) for c in f.images)
+        # the room up to pixel noise (sigma 2) everywhere; the person would differ by > 100 somewhere
+        empty = max(np.abs(f.images[c].astype(int) - r).max() for c, r in zip(f.images, room, strict=True)) < 30
+        assert (same, empty) == ((False, True) if cfg.blacked_out(f.index) else (True, False)), f.index

@@ -51,6 +51,19 @@ def _check_synth_args(args: argparse.Namespace) -> None:
         raise InputError(f"--empty-start {args.empty_start:g}: must be >= 0 and shorter than --duration")
     if not (math.isfinite(args.noise) and args.noise >= 0):
         raise InputError(f"--noise {args.noise:g}: must be >= 0")
+    args.blackout_span = _parse_blackout(args.blackout, args.duration) if getattr(args, "blackout", None) else None
+
+
+def _parse_blackout(text: str, duration: float) -> tuple[float, float]:
+    """--blackout START:SECONDS -> (start_s, seconds); InputError unless both are finite, start >= 0,
+    seconds > 0 and the span starts inside the scene."""
+    try:
+        start, seconds = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise InputError(f"--blackout {text}: expected START:SECONDS, e.g. 2.0:1.0") from None
+    if not (math.isfinite(start) and math.isfinite(seconds) and 0 <= start < duration and seconds > 0):
+        raise InputError(f"--blackout {text}: need 0 <= START < --duration and SECONDS > 0")
+    return start, seconds
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -64,7 +77,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     config = SceneConfig(
         n_cameras=args.cameras, width=args.width, height=args.height, fps=args.fps, duration_s=args.duration,
         seed=args.seed, noise_sigma=args.noise, motion=args.motion, occlusion=args.occlusion,
-        distractor=args.distractor, empty_s=args.empty_start,
+        distractor=args.distractor, empty_s=args.empty_start, blackout=args.blackout_span,
     )
     body = load_body_model(args.body_model)
     cameras = scene_cameras(config)
@@ -394,6 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--distractor", action="store_true", help="a second person walks through")
     s.add_argument("--empty-start", type=float, default=0.0, metavar="S",
                    help="the room is empty for the first S seconds, then the person appears (default 0)")
+    s.add_argument("--blackout", default=None, metavar="START:SECONDS",
+                   help="every camera sees only the empty room from START for SECONDS (the person keeps moving, "
+                        "ground truth is kept): an 'occlude everything' event, e.g. 2.0:1.0")
     s.add_argument("--image-format", default="raw", choices=["raw", "png", "jpeg"],
                    help="raw sensor_msgs/Image, or CompressedImage (png lossless, jpeg small)")
     s.add_argument("--body-model", default=None)

@@ -27,7 +27,7 @@ from .loose_limbed import LooseLimbedBP, LooseLimbedTracker, NBPConfig, TrackerC
 from .part_likelihood import LikelihoodConfig, PartLikelihood, view_evidence
 from .part_potentials import LooseLimbedModel
 from .shouters import Shouter, ShouterConfig
-from .types import STATUS_INITIALIZING, STATUS_TRACKING, BodyEstimate, LinkEstimate
+from .types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING, BodyEstimate, LinkEstimate
 
 
 @dataclass
@@ -41,6 +41,11 @@ class StageConfig:
     seed: int = 0
     background_seed_frames: int = 11   #: frames in the background median (blobs.BlobTrackerConfig)
     background_seed_stride: int = 4    #: one seed frame every this many frames
+    #: no body when the estimate's mean part log-likelihood (LooseLimbedTracker.score) is below this (the
+    #: tracker's lost_score: the next frame is found again from no prior pose); None: always a body.
+    #: Measured (bench/loose_limbed.py section 5 scene, seed 3, 320x240): the person ≈ −12…−14, a
+    #: "body" found in an empty room whose background model holds ghosts of the person ≈ −19…−20
+    min_score: float | None = None
 
 
 class LooseLimbedStage:
@@ -59,7 +64,7 @@ class LooseLimbedStage:
         self.tracker = LooseLimbedTracker(bp, Shouter(self.geometry, self.likelihood, ShouterConfig(), seed=cfg.seed),
                                           TrackerConfig(init_iterations=cfg.init_iterations,
                                                         track_iterations=cfg.track_iterations,
-                                                        use_shouters=cfg.use_shouters))
+                                                        use_shouters=cfg.use_shouters, lost_score=cfg.min_score))
         bcfg = BlobTrackerConfig(background_seed_frames=cfg.background_seed_frames,
                                  background_seed_stride=cfg.background_seed_stride)
         self.backgrounds = {c.name: BackgroundModel(bcfg) for c in self.cameras}
@@ -88,8 +93,8 @@ class LooseLimbedStage:
                 bg.foreground(img, img.astype(np.float32))
 
     def step(self, stamp_ns: int, images: dict[str, np.ndarray]) -> BodyEstimate | None:
-        """Process one frame (camera name -> BGR uint8 image); None while the backgrounds seed or
-        when no part is found (e.g. nobody in view)."""
+        """Process one frame (camera name -> BGR uint8 image); None while the backgrounds seed, when no
+        part is found (e.g. nobody in view) or the body found scores below ``min_score``."""
         self.step_background(images)
         if not self.ready:
             return None
@@ -98,6 +103,8 @@ class LooseLimbedStage:
                                self.likelihood.config) for c in self.cameras]
         initialising = not self.tracker.previous
         joints = self.tracker.step(views)
+        if self.tracker.lost:  # too unlikely a body (StageConfig.min_score): nobody found
+            return None
         beliefs = {(0, p): b for p, b in (self.tracker.previous or {}).items()}
         pos, quat = estimate_parts(beliefs, 0, self.geometry.n_parts)
         links = [LinkEstimate(name=name, position=pos[p], rotation=Rotation.from_quat(quat[p]).as_matrix())
@@ -107,3 +114,44 @@ class LooseLimbedStage:
         return BodyEstimate(stamp_ns=int(stamp_ns), joint_names=list(self.body.joint_names), joints=joints,
                             links=links, blobs=[], status=STATUS_INITIALIZING if initialising else STATUS_TRACKING,
                             quality=float(np.mean(np.all(np.isfinite(joints), axis=1))))
+
+
+class InitialiserPolicy:
+    """When the loose_limbed node infers (ALGORITHMS.md §4 "automatic initialisation, recovery from
+    loss"): in mode estimator on every frame; as an initialiser at start (until its first estimate)
+    and on every frame after the skeleton's last body had status LOST — the first after the skeleton
+    became LOST found again from no prior pose (status INITIALIZING), the following ones tracked
+    (TRACKING: what the skeleton takes as a re-seed). Shared by the node and bench/loose_limbed.py's
+    closed-loop recovery."""
+
+    def __init__(self, estimator: bool = False):
+        self.estimator = bool(estimator)
+        self.needs_init = True
+        self.skeleton_ok = False  # the skeleton's last body was not LOST
+
+    def skeleton(self, status: int) -> bool:
+        """Note the status of the skeleton's latest body; True when it has just become LOST (then the
+        next frame is found again from no prior pose; while it stays LOST the body found is tracked on,
+        so that a TRACKING body can re-seed it)."""
+        lost = int(status) == STATUS_LOST
+        newly = lost and self.skeleton_ok
+        self.skeleton_ok = not lost
+        self.needs_init = self.needs_init or newly
+        return newly
+
+    def infer(self) -> bool:
+        """Infer on the next frame (else only seed the backgrounds)?"""
+        return self.estimator or self.needs_init or not self.skeleton_ok
+
+    def step(self, stage: LooseLimbedStage, stamp_ns: int, images: dict[str, np.ndarray]) -> BodyEstimate | None:
+        """One frame through ``stage`` as the policy says (None: no inference or nothing found)."""
+        if not self.infer():
+            if not stage.ready:
+                stage.step_background(images)
+            return None
+        if self.needs_init:
+            stage.reinitialise()
+        est = stage.step(stamp_ns, images)
+        if est is not None:
+            self.needs_init = False
+        return est

@@ -70,7 +70,8 @@ it explains the labelled blobs much better (knees and elbows bend one way only).
 than ``tracking.min_blobs`` usable blobs (triangulated; for the Kalman tracker:
 passing the innovation gate); while lost, ``predict`` carries no blobs (so the
 2-D trackers fall back to their start-up classes) and the tracker re-initialises
-as at start-up.
+as at start-up (unless ``tracking.relocalise_from_blobs`` is false: then only
+``reseed`` — another estimator's body, e.g. the loose-limbed one — restarts it).
 
 Units: metres, radians, seconds (stamps in integer ns); world frame z up.
 """
@@ -154,6 +155,9 @@ class TrackingConfig:
 
     min_blobs: int = 3
     lost_after_frames: int = 15
+    #: a LOST estimator re-initialises from its own blobs (False: only ``reseed`` restarts it, e.g. from
+    #: the loose_limbed node; the first start still uses the blobs)
+    relocalise_from_blobs: bool = True
     verify_frames: int = 20
     flip_cost_ratio: float = 0.5
 
@@ -750,7 +754,9 @@ class _Estimator:
         cfg = self.cfg.tracking
         if self.theta is None or self.status == STATUS_LOST:
             theta0 = None
-            if len(obs) >= cfg.min_blobs:
+            if self.theta is not None and not cfg.relocalise_from_blobs:
+                pass  # lost: wait for a re-seed
+            elif len(obs) >= cfg.min_blobs:
                 theta0 = self._init_from_labelled(obs)
             elif self._has_startup_blobs(blobs_by_camera):
                 theta0 = self._init_from_startup(blobs_by_camera)

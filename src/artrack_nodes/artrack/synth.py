@@ -454,6 +454,9 @@ class SceneConfig:
     occlusion: bool = False
     distractor: bool = False
     empty_s: float = 0.0  # the room is empty this long before the person appears (motion clock starts then)
+    #: (start_s, seconds): every camera sees only the empty room in that span (the person goes on
+    #: moving; ground truth is kept) — an "occlude everything" event for recovery tests
+    blackout: tuple[float, float] | None = None
 
     @property
     def n_frames(self) -> int:
@@ -464,6 +467,14 @@ class SceneConfig:
     def motion_name(self) -> str:
         """The motion actually played."""
         return "self_occlusion" if self.occlusion and self.motion == "default" else self.motion
+
+    def blacked_out(self, index: int) -> bool:
+        """Frame ``index`` falls in the blackout span (start <= t < start + seconds, t = index / fps)."""
+        if self.blackout is None:
+            return False
+        t = index / self.fps
+        start, seconds = self.blackout
+        return start <= t < start + seconds
 
 
 @dataclass
@@ -508,7 +519,10 @@ def generate_scene(config: SceneConfig, body: BodyModel | None = None,
         present = t >= 0.0
         theta = pose_at(motion, t, body) if present else None
         extra = [pose_at("distractor", t, body)] if config.distractor and present else []
-        imgs = renderer.render(theta, extra, config.noise_sigma, frame_index=i)
+        if config.blacked_out(i):  # the cameras see the empty room; the truth goes on
+            imgs = renderer.render(None, (), config.noise_sigma, frame_index=i)
+        else:
+            imgs = renderer.render(theta, extra, config.noise_sigma, frame_index=i)
         yield SynthFrame(
             index=i,
             stamp_ns=frame_stamp_ns(i, config.fps),

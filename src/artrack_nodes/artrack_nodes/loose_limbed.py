@@ -6,9 +6,15 @@ feeds the frame to the ROS-free LooseLimbedStage (per-camera background seeded f
 frames, shouters + NBP) and publishes /artrack/loose_limbed/body (artrack_msgs/TrackedBody: the
 15 joints and one link per part; status INITIALIZING on a frame found from no prior pose).
 
-mode=initialiser: infers only at start (until the skeleton has published a body that is not
-LOST) and whenever the skeleton's last body has status LOST — then it re-initialises from no
-prior pose. mode=estimator: tracks every frame, an estimator of its own.
+With ``lockstep`` (graph: lockstep replay) it answers every complete frame: the estimate, or a body
+with status LOST and NaN joints when it did not infer or found nobody, so that a skeleton waiting
+for its re-seed (skeleton ``reseed_topic`` in lockstep) never waits in vain.
+
+mode=initialiser: infers only at start (until its first body) and whenever the skeleton's last
+body has status LOST (artrack.loose_limbed_stage.InitialiserPolicy): the first frame after the
+skeleton became LOST is found from no prior pose (INITIALIZING), the following ones are tracked
+(TRACKING, what the skeleton re-seeds from); a body scoring below ``min_score`` is not published
+and the next frame starts afresh. mode=estimator: tracks every frame, an estimator of its own.
 The skeleton reads /artrack/loose_limbed/body when its ``reseed_topic`` names it (graph:
 ``--set loose_limbed=true --set reseed_topic=/artrack/loose_limbed/body``) and re-initialises
 from it when lost.
@@ -18,14 +24,15 @@ from __future__ import annotations
 
 import sys
 
+import numpy as np
 from rclpy.node import Node
 
 from artrack.body_model import load_body_model
 from artrack.errors import ArtrackError, InputError
-from artrack.loose_limbed_stage import LooseLimbedStage, StageConfig
+from artrack.loose_limbed_stage import InitialiserPolicy, LooseLimbedStage, StageConfig
 from artrack.messages import bgr_from_image_msg, body_msg, ns_from_time
 from artrack.part_potentials import load_model
-from artrack.types import STATUS_LOST
+from artrack.types import STATUS_LOST, BodyEstimate
 
 from .common import (
     BODY_TOPIC,
@@ -45,10 +52,14 @@ PARAMS = [
     ("camera_names", ["cam01", "cam02", "cam03", "cam04"], "cameras whose images are used"),
     ("mode", "initialiser", "initialiser (at start and when the skeleton is LOST) | estimator (every frame)"),
     ("reliable_images", False, "reliable image QoS (lockstep bag replay) instead of sensor data"),
+    ("lockstep", False, "answer every frame (LOST with NaN joints when there is no estimate): a lockstep "
+                        "skeleton with reseed_topic waits for it"),
     ("init_iterations", 10, "BP iterations when finding the body from no prior pose"),
     ("track_iterations", 2, "BP iterations per tracked frame (mode=estimator)"),
     ("particles", 100, "belief samples per part and iteration"),
     ("seed", 0, "random seed of the inference"),
+    ("min_score", -17.0, "no body when its mean part log-likelihood is below this (a person scores about -12 to "
+                         "-14, a body found in background ghosts about -19 to -20); the next frame starts afresh"),
     ("background_frames", 11, "frames in each camera's background median (seeded before any inference)"),
     ("background_stride", 4, "one background seed frame every this many frames"),
     ("model", "", "potentials YAML (empty: config/loose_limbed_model.yaml)"),
@@ -56,8 +67,8 @@ PARAMS = [
     ("body_id", 0, "id published in TrackedBody.body_id"),
     ("world_frame", "world", "frame_id of the published bodies"),
 ]
-LIMITS = {"init_iterations": (1, 100), "track_iterations": (1, 50), "particles": (10, 10000),
-          "background_frames": (1, 1000), "background_stride": (1, 1000)}
+LIMITS = {"min_score": (-1000.0, 0.0), "init_iterations": (1, 100), "track_iterations": (1, 50),
+          "particles": (10, 10000), "background_frames": (1, 1000), "background_stride": (1, 1000)}
 RUNTIME: tuple[str, ...] = ()  # all read-only once running
 
 
@@ -69,13 +80,11 @@ class LooseLimbedNode(Node):
         self.names = list(p["camera_names"])
         if p["mode"] not in ("initialiser", "estimator"):
             raise InputError(f"loose_limbed: parameter 'mode' must be initialiser or estimator, got {p['mode']!r}")
-        self.estimator = p["mode"] == "estimator"
+        self.policy = InitialiserPolicy(estimator=p["mode"] == "estimator")
         self.body = load_body_model(p["body_model"] or None)
         self.model = load_model(p["model"] or None)
         self.stage: LooseLimbedStage | None = None
         self.pending: dict[int, dict] = {}
-        self.skeleton_ok = False  # the skeleton has published a body that is not LOST
-        self.needs_init = True
         f = msgs()
         self.pub = self.create_publisher(f.cls("artrack_msgs/msg/TrackedBody"), OUTPUT_TOPIC, RESULT_QOS)
         self.rig = CameraRigListener(self, self.names, self.on_cameras)
@@ -91,14 +100,12 @@ class LooseLimbedNode(Node):
         self.stage = LooseLimbedStage(self.body, cameras, self.model, StageConfig(
             init_iterations=int(p["init_iterations"]), track_iterations=int(p["track_iterations"]),
             n_particles=int(p["particles"]), seed=int(p["seed"]),
-            background_seed_frames=int(p["background_frames"]), background_seed_stride=int(p["background_stride"])))
+            background_seed_frames=int(p["background_frames"]), background_seed_stride=int(p["background_stride"]),
+            min_score=float(p["min_score"])))
 
     def on_skeleton(self, msg) -> None:
-        lost = int(msg.status) == STATUS_LOST
-        if lost and not self.needs_init:
+        if self.policy.skeleton(int(msg.status)):
             self.get_logger().info("skeleton reports LOST: re-initialising")
-        self.skeleton_ok = not lost
-        self.needs_init = self.needs_init or lost
 
     def on_image(self, name: str, msg) -> None:
         topic = camera_topic(name, "image_raw")
@@ -116,24 +123,17 @@ class LooseLimbedNode(Node):
 
     def process(self, stamp: int, images: dict) -> None:
         assert self.stage is not None
-        infer = self.estimator or self.needs_init or not self.skeleton_ok
-        if not infer:
-            if not self.stage.ready:  # keep seeding the backgrounds
-                try:
-                    self.stage.step_background(images)
-                except (ArtrackError, ValueError) as exc:
-                    self.get_logger().error(f"dropped frame {stamp}: {exc}")
-            return
-        if self.needs_init:
-            self.stage.reinitialise()
         try:
-            est = self.stage.step(stamp, images)
+            est = self.policy.step(self.stage, stamp, images)
         except (ArtrackError, ValueError) as exc:
             self.get_logger().error(f"dropped frame {stamp}: {exc}")
             return
         if est is None:
-            return
-        self.needs_init = False
+            if not self.p["lockstep"]:
+                return
+            n = len(self.body.joint_names)
+            est = BodyEstimate(stamp_ns=stamp, joint_names=list(self.body.joint_names),
+                               joints=np.full((n, 3), np.nan), links=[], blobs=[], status=STATUS_LOST, quality=0.0)
         self.pub.publish(body_msg(msgs(), est, self.p["world_frame"], int(self.p["body_id"])))
 
 

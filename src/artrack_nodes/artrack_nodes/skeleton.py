@@ -9,7 +9,10 @@ cameras have reported a frame (or, free-running, after sync_timeout_s) it publis
 for the next frame, which feedback_projection turns into 2-D priors and edge_features
 measures about). With ``reseed_topic`` set (e.g. /artrack/loose_limbed/body, the loose_limbed
 node's TRACKING bodies, ALGORITHMS.md §4) a lost or not yet started estimator is re-initialised
-from the 15 joints of the bodies arriving there.
+from the 15 joints of the bodies arriving there; in lockstep, while it is lost or not started and
+that topic has a publisher, each frame also waits (up to lockstep_timeout_s) for that topic's body
+of the same frame (the loose_limbed node in lockstep answers every frame), so the re-seed comes
+before the frame is estimated and the replay stays reproducible.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from artrack.edge_fusion import combine
 from artrack.errors import ArtrackError
 from artrack.messages import blobs_from_msg, body_from_msg, body_msg, edge_stats_from_msg
 from artrack.pipeline import SkeletonStage, load_pipeline_config
-from artrack.types import STATUS_TRACKING
+from artrack.types import STATUS_LOST, STATUS_TRACKING
 
 from .common import (
     BODY_TOPIC,
@@ -80,6 +83,7 @@ class SkeletonNode(Node):
         self.pending_edges: dict[int, dict] = {}
         self.first_seen: dict[int, float] = {}
         self.last_done = -1
+        self.reseed_seen = -1  # newest frame stamp heard on reseed_topic
         f = msgs()
         body_cls = f.cls("artrack_msgs/msg/TrackedBody")
         self.body_pub = self.create_publisher(body_cls, BODY_TOPIC, RESULT_QOS)
@@ -110,7 +114,9 @@ class SkeletonNode(Node):
             return
         try:
             other = body_from_msg(msg)
+            self.reseed_seen = max(self.reseed_seen, other.stamp_ns)
             if other.status != STATUS_TRACKING:
+                self.flush()  # a frame may be waiting for this answer
                 return
             taken = self.stage.estimator.reseed(other.stamp_ns, other.joints)
         except (ValueError, AttributeError, ArtrackError) as exc:
@@ -119,6 +125,17 @@ class SkeletonNode(Node):
             return
         if taken:
             self.get_logger().info(f"estimator re-initialised from {self.p['reseed_topic']} (frame {other.stamp_ns})")
+        self.flush()
+
+    def _waits_for_reseed(self, stamp: int) -> bool:
+        """Lockstep with a live reseed_topic: a lost or not yet started estimator waits for that topic's
+        body of frame ``stamp`` before estimating it."""
+        if not (self.lockstep and self.p["reseed_topic"]) or self.reseed_seen >= stamp:
+            return False
+        est = self.stage.estimator
+        if est.theta is not None and est.status != STATUS_LOST:
+            return False
+        return self.count_publishers(self.p["reseed_topic"]) > 0
 
     def on_blobs(self, msg) -> None:
         self._receive(msg, blobs_from_msg, "Blob2DArray", "blobs", self.pending)
@@ -164,6 +181,8 @@ class SkeletonNode(Node):
             lock_limit = float(self.p["lockstep_timeout_s"])
             if not complete and (not (lock_limit > 0 and waited > lock_limit) if self.lockstep
                                  else not (timed_out or newer_complete)):
+                return
+            if complete and self._waits_for_reseed(stamp) and not (lock_limit > 0 and waited > lock_limit):
                 return
             if not complete and self.lockstep:
                 missing = sorted(set(self.names) - set(got))
