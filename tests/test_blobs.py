@@ -281,6 +281,34 @@ def test_priors_assign_labels_to_close_discs_with_accurate_statistics():
     assert np.allclose(shirt.mean[:2], [35 / 280, 80 / 280], atol=0.02)
 
 
+def test_part_colours_give_a_bare_torso_the_skin_class():
+    """``part_colours`` overrides the body model's colour class of a part: a bare (skin-coloured)
+    torso tracked as class 'skin' shares the skin model with head and hands (no 'shirt' class is
+    made) and is found; a part the tracker does not know, or a start-up class, is refused."""
+    tracker = make_tracker(part_colours={"torso": SKIN})
+    assert tracker.colour_classes == {"torso": SKIN, "head": SKIN, "l_hand": SKIN, "r_hand": SKIN}
+    assert make_tracker().colour_classes["torso"] == "shirt"  # default: the body model's class
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    parts["torso"] = ("ellipse", (160.0, 140.0), (28.0, 45.0), SKIN_BGR)
+    parts["l_hand"] = ("disc", (100.0, 150.0), 8.0, SKIN_BGR)  # hands clear of the torso
+    parts["r_hand"] = ("disc", (220.0, 150.0), 8.0, SKIN_BGR)
+    for t in range(3):
+        img, masks = render(parts, 80 + t)
+        blobs = by_label(tracker.step(img, priors_for(parts)))
+        assert set(blobs) == set(LABELS)
+        ys, xs = np.nonzero(masks["torso"])
+        assert np.linalg.norm(blobs["torso"].mean - [xs.mean(), ys.mean()]) < 2.0
+        assert abs(blobs["torso"].pixel_count - masks["torso"].sum()) < 0.1 * masks["torso"].sum()
+    assert set(tracker.colour_models) == {SKIN}
+    with pytest.raises(InputError, match="part_colours.*l_foot"):
+        make_tracker(part_colours={"l_foot": SKIN})
+    with pytest.raises(InputError, match="part_colours"):
+        BlobTrackerConfig(part_colours={"torso": FOREGROUND})
+    with pytest.raises(InputError, match="part_colours"):
+        BlobTrackerConfig(part_colours=["torso"])
+
+
 def test_occluded_prior_is_not_reported():
     tracker = make_tracker()
     seed_with_moving_person(tracker)

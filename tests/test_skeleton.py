@@ -17,7 +17,10 @@ from artrack.errors import InputError
 from artrack.motion import pose_at
 from artrack.skeleton import (
     BodyKinematics,
+    GroundContact,
+    PointTarget,
     SkeletonConfig,
+    fit_pose,
     load_skeleton_config,
     make_estimator,
 )
@@ -244,6 +247,28 @@ def test_startup_from_foreground_and_skin_gives_right_facing(body, cameras, yaw)
     assert np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean() < 0.06
 
 
+def test_startup_picks_the_person_at_start_xy(body, cameras):
+    """Two people in view: the other one stands 0.25 m higher (on a step), so their face is the
+    highest skin point and the plain start-up takes it; with startup.start_xy / start_radius_m
+    on the first person, the start is on them."""
+    theta = body.rest_pose()
+    theta[0:6] = [0.3, -0.2, 0.95, 0.0, 0.0, 0.5]
+    other = body.rest_pose()
+    other[0:6] = [-0.9, 0.9, 1.20, 0.0, 0.0, -2.0]
+    blobs = startup_blobs(body, cameras, theta)
+    for name, extra in startup_blobs(body, cameras, other).items():
+        blobs[name] += [b for b in extra if b.label == "skin"]
+    head = body.blob_centres(theta)[body.blob_labels.index("head")]
+    dist = {}
+    for radius in (0.0, 0.7):
+        cfg = {"startup": {"max_skin_blobs_per_camera": 6, "start_xy": [0.3, -0.2], "start_radius_m": radius}}
+        e = make_estimator("baseline", body, cameras, cfg).update(stamp(0), blobs)
+        assert e.status == STATUS_TRACKING
+        dist[radius] = float(np.linalg.norm(_hand(e, "head") - head))
+    assert dist[0.0] > 0.5, dist
+    assert dist[0.7] < 0.08, dist
+
+
 def test_status_initializing_lost_and_recovery(body, cameras):
     cfg = {"tracking": {"lost_after_frames": 3}}
     est = make_estimator("kinematic", body, cameras, cfg)
@@ -373,6 +398,12 @@ def test_config_file_and_errors(body, cameras):
         load_skeleton_config({"kinematic": {"bogus": 1}})
     with pytest.raises(InputError, match="unknown section"):
         load_skeleton_config({"kalman": {}})
+    with pytest.raises(InputError, match="startup.start_xy"):
+        load_skeleton_config({"startup": {"start_xy": [1.0, 2.0, 3.0]}})
+    with pytest.raises(InputError, match="ground_sigma_m"):
+        load_skeleton_config({"fit": {"ground_sigma_m": -0.1}})
+    pose2sim = yaml.safe_load((config_dir() / "pose2sim_skeleton.yaml").read_text())
+    assert load_skeleton_config(pose2sim).fit.ground_sigma_m > 0  # the recording's file loads
     with pytest.raises(InputError, match="unknown estimator kind"):
         make_estimator("particle", body, cameras, None)
     with pytest.raises(InputError, match="rest_sigma_by_link"):
@@ -405,6 +436,32 @@ def test_baseline_fit_is_robust_to_one_mislabelled_blob(body, cameras):
     # (18 mm on the true blobs; the torso blob carries most of the torso's information)
     assert errs[3.0] < 0.05, errs
     assert errs[0.0] > 1.3 * errs[3.0], errs
+
+
+def test_ground_contact_keeps_a_foot_on_the_floor(body):
+    """fit.ground_sigma_m: with the shin blobs pulled 0.3 m up (mislabelled onto the shorts), the
+    plain fit lifts both feet off the floor; with the floor contact the lower ankle stays at its
+    rest height above z = 0 and none goes below it."""
+    ground = GroundContact.from_body(body, sigma=0.005)
+    assert [body.joint_names[i] for i in range(len(body.joint_names))
+            if body.joint_links[i] in ground.links] == ["l_ankle", "r_ankle"]
+    rest = body.rest_pose()
+    assert np.allclose(ground.residuals(body.forward_kinematics(rest)), 0.0)
+    assert np.allclose(ground.height, body.joint_positions(rest)[[11, 14], 2])
+    means, _ = body.blob_gaussians(rest)
+    targets = []
+    for k, lab in enumerate(body.blob_labels):
+        y = means[k] + (np.array([0.0, 0.0, 0.3]) if lab.endswith("shin") else 0.0)
+        link = body.link_names.index(lab)
+        local = np.linalg.inv(body.forward_kinematics(rest)[link]) @ np.append(means[k], 1.0)
+        targets.append(PointTarget(link, local[:3], y, np.eye(3) / 0.03**2))
+    ankles = [body.joint_names.index(n) for n in ("l_ankle", "r_ankle")]
+    lowest = {}
+    for name, g in (("plain", None), ("ground", ground)):
+        theta, _, _ = fit_pose(body, rest, targets, rest, 1.0, max_nfev=100, ground=g)
+        lowest[name] = body.joint_positions(theta)[ankles, 2].min() - ground.height.min()
+    assert lowest["plain"] > 0.06, lowest
+    assert -0.01 < lowest["ground"] < 0.02, lowest
 
 
 def test_kinematic_keeps_fast_limbs_when_the_wave_starts(body, cameras):

@@ -173,6 +173,9 @@ class BlobTrackerConfig:
     skin_rg_correlation: float = 0.0
     #: pixels darker than this intensity (0..1) are never skin (hair, deep shadow)
     skin_min_intensity: float = 0.25
+    #: colour class of a part's blob, overriding the body model's ({label: class}; e.g. a person with a
+    #: bare torso and bare shins: {torso: skin, l_shin: skin, r_shin: skin}); empty = the body model's
+    part_colours: dict[str, str] = field(default_factory=dict)
     #: sigmas of (r, g, I) of the broad start model of a colour class without a default (mean 1/3, 1/3, 0.5)
     unknown_colour_sigma: tuple[float, float, float] = (0.2, 0.2, 0.5)
     #: colour models are bootstrapped (robustly) and learned only from pixels within this many sigmas
@@ -270,6 +273,11 @@ class BlobTrackerConfig:
                 raise bad(name, "must be a non-negative integer")
         if self.colour_features not in ("rgI", "rg"):
             raise bad("colour_features", "must be 'rgI' or 'rg'")
+        if not isinstance(self.part_colours, dict) or not all(
+                isinstance(k, str) and isinstance(v, str) and v for k, v in self.part_colours.items()):
+            raise bad("part_colours", "must map part labels to colour class names")
+        if FOREGROUND in self.part_colours.values():
+            raise bad("part_colours", f"cannot use the start-up class '{FOREGROUND}'")
         if self.work_scale > 1.0:
             raise bad("work_scale", "must be in (0, 1]")
         if not -0.95 <= self.skin_rg_correlation <= 0.95:
@@ -574,8 +582,13 @@ class BlobTracker2D:
         if FOREGROUND in self.labels or SKIN in self.labels:
             raise InputError(f"camera '{self.camera_name}': '{FOREGROUND}'/'{SKIN}' are start-up classes, "
                              "not link labels")
-        self.colour_classes = {lab: str((colour_classes or {}).get(lab, lab)) for lab in self.labels}
         self.config = config or BlobTrackerConfig()
+        unknown = sorted(set(self.config.part_colours) - set(self.labels))
+        if unknown:
+            raise InputError(f"camera '{self.camera_name}': blob tracker config field 'part_colours' names "
+                             f"unknown part '{unknown[0]}' (parts: {', '.join(self.labels)})")
+        classes = {**(colour_classes or {}), **self.config.part_colours}
+        self.colour_classes = {lab: str(classes.get(lab, lab)) for lab in self.labels}
         self.reset()
 
     # ------------------------------------------------------------------ state

@@ -16,6 +16,10 @@ Kinds
     unobserved dofs (elbow swivel, feet) stay sane. No temporal filtering beyond
     that warm start / weak previous-pose term. ``predict`` returns the last
     estimate (zero-velocity model) with covariance inflated by (σ_v Δt)².
+    Optional floor contact (``fit.ground_sigma_m`` > 0, :class:`GroundContact`, also in
+    the initial fits): a person standing or walking on the floor keeps the lower of the
+    body's lowest rest points (the ankles) at its rest height above z = ``fit.floor_z_m``
+    and neither below it — legs whose blobs are missing or mislabelled are not pulled up.
 
 ``'kinematic'`` — the paper's cheap variant (§2.3, "15 % CPU"): one
     constant-acceleration Kalman filter per blob (paper Eq. 7; ``kalman.py``)
@@ -59,7 +63,9 @@ Start-up (``STATUS_INITIALIZING`` until a pose exists): from labelled blobs
 from the start-up classes: the ``foreground`` blob is triangulated to the body
 centre, ``skin`` blobs are matched across views (candidate correspondences seeded
 from camera pairs, extended to the other views, scored by reprojection error,
-picked greedily), the highest becomes the head (face), the two others the hands;
+picked greedily; with ``startup.start_radius_m`` > 0 only those within that horizontal
+distance of ``startup.start_xy``: the person standing there when several are in view),
+the highest becomes the head (face), the two others the hands;
 the heading is taken from the face's horizontal offset from the body axis and
 from the line between the hands (whose two perpendicular choices are tried), and
 the rest pose rotated about z is fitted for each candidate, keeping the most
@@ -125,6 +131,7 @@ __all__ = [
     "BaselineEstimator",
     "BodyKinematics",
     "DynamicEstimator",
+    "GroundContact",
     "KinematicEstimator",
     "SkeletonConfig",
     "fit_pose",
@@ -184,6 +191,8 @@ class FitConfig:
     robust_scale: float = 3.0
     edge_sigma_px: float = 1.0
     edge_min_found: int = 8
+    ground_sigma_m: float = 0.0
+    floor_z_m: float = 0.0
 
 
 @dataclass
@@ -245,6 +254,8 @@ class StartupConfig:
     centroid_sigma_z_m: float = 0.30
     facing_weight: float = 20.0
     reach_margin: float = 1.15
+    start_xy: tuple = (0.0, 0.0)
+    start_radius_m: float = 0.0
 
 
 @dataclass
@@ -293,6 +304,11 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
                     f"skeleton config: field '{name}.{key}' must be {type(default).__name__}"
                 ) from None
             setattr(current, key, value)
+    xy = out.startup.start_xy
+    if len(xy) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in xy):
+        raise InputError("skeleton config: field 'startup.start_xy' must be two finite numbers (x, y), m")
+    if out.fit.ground_sigma_m < 0 or out.startup.start_radius_m < 0:
+        raise InputError("skeleton config: fields 'fit.ground_sigma_m' and 'startup.start_radius_m' must be >= 0")
     if out.measurement.blob_cov not in ("shape+state", "state"):
         raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
     return out
@@ -447,6 +463,35 @@ class LinkGoals:
         return cls(use, inverse_se3(stats.reference[use]), xi, S)
 
 
+@dataclass
+class GroundContact:
+    """Soft floor contact for :func:`fit_pose`: the body's lowest points at rest (``links`` (F,),
+    ``local`` (F, 3) link frame, e.g. the ankles) stand ``height`` (F,) m above the floor at rest.
+    A person standing or walking on the floor z = ``floor_z`` (world, m) keeps at least one of them
+    there, and none below: residuals ``(min_k (z_k − h_k) − floor_z) / sigma`` and
+    ``min(z_k − h_k − floor_z, 0) / sigma`` per point (sigma, m)."""
+
+    links: np.ndarray
+    local: np.ndarray
+    height: np.ndarray
+    floor_z: float
+    sigma: float
+
+    @classmethod
+    def from_body(cls, body: BodyModel, sigma: float, floor_z: float = 0.0, tolerance_m: float = 0.05
+                  ) -> GroundContact:
+        """The output joints within ``tolerance_m`` of the lowest one at the rest pose (the body
+        model's rest pose stands on z = 0: the ankles), at their rest heights."""
+        z = body.joint_positions(body.rest_pose())[:, 2]
+        low = np.flatnonzero(z <= z.min() + tolerance_m)
+        return cls(body.joint_links[low], body.joint_points[low], z[low], float(floor_z), float(sigma))
+
+    def residuals(self, world_from_link: np.ndarray) -> np.ndarray:
+        """(..., F + 1) whitened residuals for poses (..., L, 4, 4)."""
+        z = BodyModel.transform_points(world_from_link, self.links, self.local)[..., 2] - self.height - self.floor_z
+        return np.concatenate([z.min(axis=-1, keepdims=True), np.minimum(z, 0.0)], axis=-1) / self.sigma
+
+
 def _whitener(info: np.ndarray) -> np.ndarray:
     """U with Uᵀ U = info (so ‖U e‖² = eᵀ info e); eigenvalues floored."""
     w, V = np.linalg.eigh(0.5 * (info + info.T))
@@ -464,6 +509,7 @@ def fit_pose(
     max_nfev: int = 40,
     robust_scale: float = 0.0,
     link_goals: LinkGoals | None = None,
+    ground: GroundContact | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Bounded least-squares fit of theta to 3-D point targets (and, optionally, link motions).
 
@@ -475,6 +521,7 @@ def fit_pose(
     mislabelled blob) pulls little; 0: plain least squares. link_goals: soft constraints on
     link poses, ``½ Σ_i ‖S_i (log(E_ref,i⁻¹ E_i(θ)) − ξ̂_i)‖²`` (the edge statistics of
     ALGORITHMS.md §2 as information ``S_iᵀ S_i`` on each link's motion, in the link frame).
+    ground: soft floor contact (:class:`GroundContact`), whitened residuals like the others.
     Returns (theta (n_dof,), cost, cov_theta (n_dof, n_dof) = (JᵀJ)⁺ at the solution, robust
     weights included).
     """
@@ -503,6 +550,8 @@ def fit_pose(
             g = link_goals
             xi = log_se3(np.einsum("gij,...gjk->...gik", g.inverse_reference, T[..., g.links, :, :]))
             r.append(np.einsum("gij,...gj->...gi", g.sqrt_information, xi - g.xi_hat).reshape(*x.shape[:-2], -1))
+        if ground is not None:
+            r.append(ground.residuals(T))
         for w, c in zip(reg_w, reg_c, strict=True):
             r.append(np.broadcast_to(w * (theta[..., jd] - c), (*x.shape[:-2], jd.size)))
         return np.concatenate(r, axis=-1)
@@ -660,6 +709,9 @@ class _Estimator:
         self.kin = BodyKinematics(body)
         self.labels = set(self.kin.blob_labels)
         self._centroid_local = self.kin.body_centroid_local()
+        f = self.cfg.fit
+        #: soft floor contact of the body fits (baseline frames, initialisation), or None
+        self._ground = GroundContact.from_body(body, f.ground_sigma_m, f.floor_z_m) if f.ground_sigma_m > 0 else None
         self._reach = self._arm_reach()
         pr = self.cfg.prior
         unknown = sorted(set(pr.rest_sigma_by_link) - set(body.link_names))
@@ -905,6 +957,7 @@ class _Estimator:
             None,
             1.0,
             max_nfev=max(f.max_nfev, 60),
+            ground=self._ground,
         )
         return theta, cost
 
@@ -943,6 +996,14 @@ class _Estimator:
         points = match_skin_blobs(
             skin, self.cameras, 6, s.match_gate_sigma, s.match_gate_px, s.missing_view_penalty_px
         )
+        centre = None if centre_blob is None else centre_blob.mean
+        if s.start_radius_m > 0:
+            # Several people in view: start on the one standing within start_radius_m of start_xy
+            # (skin points elsewhere belong to others; a foreground centre elsewhere mixes people).
+            xy = np.asarray(s.start_xy, float).reshape(2)
+            points = [p for p in points if np.linalg.norm(p[0][:2] - xy) <= s.start_radius_m]
+            if centre is not None and np.linalg.norm(centre[:2] - xy) > s.start_radius_m:
+                centre = None
         if not points:
             return None
         # The face is the highest skin point; hands are the best-scoring others within
@@ -953,7 +1014,6 @@ class _Estimator:
             for p in points
             if p[0] is not face and np.linalg.norm(p[0] - face) <= s.reach_margin * self._reach
         ][:2]
-        centre = None if centre_blob is None else centre_blob.mean
         yaw_face = None
         if centre is not None:
             off = (face - centre)[:2]
@@ -1116,6 +1176,7 @@ class BaselineEstimator(_Estimator):
             f.max_nfev,
             f.robust_scale,
             goals,
+            self._ground,
         )
         self._set_pose(theta, cov, self.poses, dt)
 
