@@ -14,6 +14,7 @@ from artrack.errors import BagError, InputError
 from artrack.evaluation import (
     evaluate,
     format_report,
+    label_confusion,
     load_truth,
     match_by_stamp,
     mpjpe,
@@ -150,3 +151,16 @@ def test_plot_error_over_time(tmp_path):
     plot_error_over_time([], [], tmp_path / "empty.png")  # no data: still a valid image
     assert cv2.imread(str(tmp_path / "empty.png")) is not None
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.png", "plots"]
+
+
+def test_label_confusion_names_the_nearest_true_part():
+    truth = {"l_hand": np.array([0.0, 0.3, 1.0]), "r_hand": np.array([0.0, -0.3, 1.0]),
+             "head": np.array([0.0, 0.0, 1.6])}
+    # l_hand right, r_hand swapped onto the left hand, an unknown label ignored
+    observed = {"l_hand": np.array([0.01, 0.3, 1.0]), "r_hand": np.array([0.0, 0.28, 1.0]),
+                "ghost": np.zeros(3)}
+    out = label_confusion(observed, truth)
+    assert set(out) == {"l_hand", "r_hand"}
+    assert out["l_hand"][0] == "l_hand" and out["l_hand"][1] == pytest.approx(0.01)
+    assert out["r_hand"][0] == "l_hand" and out["r_hand"][1] == pytest.approx(np.hypot(0.0, 0.58))
+    assert label_confusion(observed, {}) == {}

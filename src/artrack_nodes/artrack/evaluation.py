@@ -36,6 +36,7 @@ __all__ = [
     "JointTrack",
     "evaluate",
     "format_report",
+    "label_confusion",
     "load_truth",
     "match_by_stamp",
     "mpjpe",
@@ -91,6 +92,29 @@ def mpjpe(pred: np.ndarray, truth: np.ndarray) -> tuple[float, np.ndarray, np.nd
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices -> NaN
         overall = float(np.nanmean(err)) if err.size else math.nan
         return overall, np.nanmean(err, axis=0), np.nanmean(err, axis=1)
+
+
+def label_confusion(observed: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[str, tuple[str, float]]:
+    """Which true part each labelled observation lies nearest to (diagnosis of blob labelling,
+    ALGORITHMS.md §1: a swapped or stolen label shows as a label whose nearest true part is
+    another one).
+
+    observed: label -> (D,) observed position (e.g. a triangulated 3-D blob mean, or a 2-D
+    blob mean in px); truth: label -> (D,) true position of every part, same units. Returns
+    label -> (nearest true label, distance to its own true part) for the observed labels that
+    have a truth.
+    """
+    names = sorted(truth)
+    if not names:
+        return {}
+    T = np.array([np.asarray(truth[n], float).reshape(-1) for n in names])
+    out = {}
+    for lab, x in observed.items():
+        if lab not in truth:
+            continue
+        d = np.linalg.norm(T - np.asarray(x, float).reshape(1, -1), axis=1)
+        out[lab] = (names[int(np.argmin(d))], float(d[names.index(lab)]))
+    return out
 
 
 @dataclass

@@ -1,0 +1,164 @@
+#!/usr/bin/env python3
+"""Where the closed loop's 2-D blob labelling goes wrong (ALGORITHMS.md §1), frame by frame.
+
+Runs ``artrack.pipeline.ClosedLoopPipeline`` on one cached synthetic scene (the same bags as
+``bench/closed_loop.py``) and compares every stage with the ground truth of ``artrack.synth``
+(the true pose from ``artrack.motion.pose_at``):
+
+* per frame: MPJPE, head / left / right wrist error (mm), true and estimated heading (yaw of
+  the root, deg), whether the estimated wrists or knees are left/right swapped;
+* per blob label: in how many views a 2-D blob was reported, the mean distance (px) of those
+  blob means to the projected true blob centre, and the 3-D stage's triangulated blob: its
+  error (mm) and whether it lies nearer another true part (``evaluation.label_confusion``:
+  a swapped or stolen label).
+
+Prints one row every ``--every`` frames::
+
+    frame  MPJPE  head  lwr  rwr  yaw true/est  swap | label views:px[mm][>nearest] ...
+
+then a summary (first tracked frame, frames with the heading off by more than 45 deg, with
+hands / legs swapped, per-label seen share, 2-D px error, mislabelled share) and ends with
+one JSON line of the summary. Deterministic; run from the repository root::
+
+    .venv/bin/python bench/label_diagnosis.py --scene default --seed 3
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "artrack_nodes"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+
+import numpy as np  # noqa: E402
+from closed_loop import SCENES, scene_bag  # noqa: E402
+
+from artrack.bags import read_scene  # noqa: E402
+from artrack.body_model import load_body_model  # noqa: E402
+from artrack.constraints import exp_so3  # noqa: E402
+from artrack.evaluation import label_confusion  # noqa: E402
+from artrack.motion import pose_at  # noqa: E402
+from artrack.pipeline import ClosedLoopPipeline, load_pipeline_config  # noqa: E402
+from artrack.progress import Progress  # noqa: E402
+from artrack.synth import START_STAMP_NS, SceneConfig  # noqa: E402
+
+HEADING_LIMIT_DEG = 45.0
+
+
+def yaw_deg(theta: np.ndarray) -> float:
+    """Heading (deg) of the root's forward (+x) axis on the floor."""
+    R = exp_so3(np.asarray(theta[3:6], float))
+    return math.degrees(math.atan2(R[1, 0], R[0, 0]))
+
+
+def swapped(est: np.ndarray, truth: np.ndarray, i: int, j: int) -> bool:
+    """Whether joints i, j of est (J, 3) fit truth better exchanged."""
+    straight = np.linalg.norm(est[i] - truth[i]) + np.linalg.norm(est[j] - truth[j])
+    crossed = np.linalg.norm(est[i] - truth[j]) + np.linalg.norm(est[j] - truth[i])
+    return bool(crossed < straight)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", default="default", choices=list(SCENES))
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--estimator", default="baseline", help="baseline | kinematic | dynamic")
+    ap.add_argument("--feedback", default="on", choices=["on", "off"])
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=240)
+    ap.add_argument("--duration", type=float, default=6.0)
+    ap.add_argument("--every", type=int, default=6, help="print every this many frames")
+    ap.add_argument("--cache", default="/tmp/artrack_bench")
+    args = ap.parse_args()
+    body = load_body_model()
+    path = scene_bag(args.scene, 4, argparse.Namespace(**vars(args)), body)
+    cfg = SceneConfig(n_cameras=4, width=args.width, height=args.height, duration_s=args.duration,
+                      seed=args.seed, **SCENES[args.scene])
+    scene = read_scene(path)
+    pipe = ClosedLoopPipeline(body, scene.cameras, load_pipeline_config(estimator=args.estimator,
+                                                                        feedback=args.feedback == "on"))
+    cams = {c.name: c for c in pipe.cameras}
+    labels = list(body.blob_labels)
+    names = list(body.joint_names)
+    J = {n: names.index(n) for n in ("head", "l_wrist", "r_wrist", "l_knee", "r_knee")}
+    rows = []
+    for stamp, images in Progress(scene.frames(), total=scene.n_frames, label="label diagnosis"):
+        res = pipe.step(stamp, images)
+        t = (int(stamp) - START_STAMP_NS) * 1e-9 - SCENES[args.scene].get("empty_s", 0.0)
+        if t < 0 or not np.all(np.isfinite(res.estimate.joints)):
+            continue
+        theta = pose_at(cfg.motion_name, t, body)
+        true_blobs = dict(zip(labels, body.blob_gaussians(theta)[0], strict=True))
+        tj = body.joint_positions(theta)
+        est = res.estimate.joints
+        err = 1e3 * np.linalg.norm(est - tj, axis=1)
+        dyaw = (yaw_deg(pipe.skeleton.estimator.theta) - yaw_deg(theta) + 180.0) % 360.0 - 180.0
+        per = {}
+        for lab in labels:
+            px = []
+            for cname, blobs in res.blobs.items():
+                uv, _ = cams[cname].project(true_blobs[lab][None])
+                px += [float(np.linalg.norm(np.asarray(b.mean) - uv[0])) for b in blobs if b.label == lab]
+            per[lab] = {"views": len(px), "px": float(np.mean(px)) if px else math.nan}
+        obs = {lab: b.mean for lab, b in pipe.skeleton.estimator.last_observed.items()}
+        for lab, (nearest, dist) in label_confusion(obs, true_blobs).items():
+            per[lab].update(mm=1e3 * dist, nearest=nearest)
+        frame = int(round((int(stamp) - START_STAMP_NS) * cfg.fps * 1e-9))
+        rows.append({"frame": frame, "mpjpe": float(err.mean()),
+                     "head": float(err[J["head"]]), "lwr": float(err[J["l_wrist"]]), "rwr": float(err[J["r_wrist"]]),
+                     "yaw_true": yaw_deg(theta), "yaw_err": float(dyaw),
+                     "hands_swapped": swapped(est, tj, J["l_wrist"], J["r_wrist"]),
+                     "legs_swapped": swapped(est, tj, J["l_knee"], J["r_knee"]), "labels": per})
+    print(f"{'frame':>5} {'MPJPE':>6} {'head':>5} {'lwr':>5} {'rwr':>5} {'yaw true/err':>13} swap | "
+          "label views:px [3-D mm] [>nearest true part]")
+    for r in rows[:: max(1, args.every)]:
+        sw = ("H" if r["hands_swapped"] else "-") + ("L" if r["legs_swapped"] else "-")
+        cells = []
+        for lab, p in r["labels"].items():
+            c = f"{lab}:{p['views']}"
+            if p["views"]:
+                c += f":{p['px']:.0f}"
+            if "mm" in p:
+                c += f"[{p['mm']:.0f}]" + ("" if p["nearest"] == lab else f">{p['nearest']}")
+            cells.append(c)
+        print(f"{r['frame']:5d} {r['mpjpe']:6.0f} {r['head']:5.0f} {r['lwr']:5.0f} {r['rwr']:5.0f} "
+              f"{r['yaw_true']:6.0f}/{r['yaw_err']:+5.0f}  {sw}  | " + " ".join(cells))
+    summary = {
+        "scene": args.scene, "seed": args.seed, "estimator": args.estimator, "feedback": args.feedback,
+        "tracked_frames": len(rows), "first_tracked_frame": rows[0]["frame"] if rows else None,
+        "mpjpe_mm": float(np.mean([r["mpjpe"] for r in rows])) if rows else math.nan,
+        "heading_off_frames": sum(abs(r["yaw_err"]) > HEADING_LIMIT_DEG for r in rows),
+        "hands_swapped_frames": sum(r["hands_swapped"] for r in rows),
+        "legs_swapped_frames": sum(r["legs_swapped"] for r in rows),
+        "labels": {},
+    }
+    for lab in labels:
+        views = [r["labels"][lab]["views"] for r in rows]
+        px = [r["labels"][lab]["px"] for r in rows if r["labels"][lab]["views"]]
+        obs = [r["labels"][lab] for r in rows if "mm" in r["labels"][lab]]
+        summary["labels"][lab] = {
+            "mean_views": float(np.mean(views)) if views else 0.0,
+            "px": float(np.mean(px)) if px else math.nan,
+            "obs3d_mm": float(np.median([o["mm"] for o in obs])) if obs else math.nan,
+            "mislabelled_share": sum(o["nearest"] != lab for o in obs) / max(len(obs), 1),
+        }
+    print(f"\ntracked {len(rows)} frames from frame {summary['first_tracked_frame']}; "
+          f"MPJPE {summary['mpjpe_mm']:.1f} mm; "
+          f"heading off > {HEADING_LIMIT_DEG:.0f} deg in {summary['heading_off_frames']}, hands swapped in "
+          f"{summary['hands_swapped_frames']}, legs swapped in {summary['legs_swapped_frames']} of them")
+    print(f"{'label':<9}{'views/4':>8}{'2-D px':>8}{'3-D mm (median)':>17}{'mislabelled %':>15}")
+    for lab, s in summary["labels"].items():
+        print(f"{lab:<9}{s['mean_views']:8.2f}{s['px']:8.1f}{s['obs3d_mm']:17.0f}{100 * s['mislabelled_share']:15.0f}")
+    print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
