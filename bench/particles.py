@@ -198,10 +198,17 @@ def main() -> None:
     overrides = {}
     for item in args.set:
         key, _, value = item.partition("=")
-        if key not in ParticleConfig.__dataclass_fields__ or not value:
-            print(f"bench/particles.py: --set {item}: expected FIELD=VALUE with a ParticleConfig field", file=sys.stderr)
+        kind = type(getattr(ParticleConfig(), key, None))
+        try:
+            if key in ("prior", "n_particles", "seed"):
+                raise ValueError("use --priors, --particles, --seeds")
+            if kind not in (int, float, str) or not value:
+                raise ValueError("expected FIELD=VALUE with a number or text field of ParticleConfig")
+            overrides[key] = kind(value)
+            ParticleConfig(**overrides).check()
+        except ValueError as exc:
+            print(f"bench/particles.py: --set {item}: {exc}", file=sys.stderr)
             sys.exit(1)
-        overrides[key] = type(getattr(ParticleConfig(), key))(value)
     tasks = [(m, s, args.priors, args.particles, args.fps, args.duration, overrides, args.records,
               args.stick2d_source)
              for s in range(args.seeds) for m in args.motions]
