@@ -292,6 +292,11 @@ def main() -> int:
     ap.add_argument("--init-scenes", type=int, default=5)
     ap.add_argument("--iterations", type=int, default=10, help="BP iterations for initialisation")
     ap.add_argument("--seeds", type=int, default=10, help="tracking seeds")
+    ap.add_argument("--seed-start", type=int, default=0, help="first tracking seed (seeds start.. start+N-1)")
+    ap.add_argument("--records", type=Path, default=None,
+                    help="append each tracking seed's per-frame errors (JSON lines) to this file")
+    ap.add_argument("--summarise-tracking", nargs="+", default=None, metavar="RECORDS",
+                    help="print section 2 over the seeds in these records files (runs split over processes) and exit")
     ap.add_argument("--frames", type=int, default=50, help="tracking frames")
     ap.add_argument("--track-iterations", type=int, default=2, help="BP iterations per tracked frame")
     ap.add_argument("--size", default="640x480")
@@ -310,6 +315,8 @@ def main() -> int:
     if args.retrain:
         retrain(path)
         return 0
+    if args.summarise_tracking:
+        return summarise_tracking(args)
     if args.quick:
         args.init_scenes, args.seeds, args.frames, args.recovery_seeds = 2, 2, 8, 1
     try:
@@ -382,9 +389,10 @@ def initialisation(args, model, body, geo, cams, lik, results: dict) -> None:
 def tracking(args, model, body, geo, cams, lik, results: dict) -> None:
     """Section 2: 50-frame low-contrast tracking, three trackers, error per frame."""
     methods = ["LL + shouters", "LL, no shouters"] + ([] if args.skip_apf else ["annealed PF"])
-    errs = {m: np.full((args.seeds, args.frames), np.nan) for m in methods}
+    seeds = list(range(args.seed_start, args.seed_start + args.seeds))
+    errs = {m: np.full((len(seeds), args.frames), np.nan) for m in methods}
     t_frame = {m: [] for m in methods}
-    for s in range(args.seeds):
+    for row, s in enumerate(seeds):
         scene = Scene(body, cams, seed=100 + s, t0=TEST_START_S, n_frames=args.frames, contrast=args.contrast,
                       noise=args.noise)
         views = [scene.views(k) for k in range(args.frames)]
@@ -408,10 +416,20 @@ def tracking(args, model, body, geo, cams, lik, results: dict) -> None:
                 else:
                     J = trackers[m].step(views[k])
                 t_frame[m].append(time.perf_counter() - t0)
-                errs[m][s, k] = mpjpe(J[None], scene.joints[k][None])[0]
-        print(f"track seed {s}: " + "  ".join(f"{m} {np.nanmean(errs[m][s]):.0f}" for m in methods),
+                errs[m][row, k] = mpjpe(J[None], scene.joints[k][None])[0]
+        print(f"track seed {s}: " + "  ".join(f"{m} {np.nanmean(errs[m][row]):.0f}" for m in methods),
               file=sys.stderr, flush=True)
-    print(f"\n2. Tracking, low contrast (x{args.contrast}, +{args.noise} noise), {args.seeds} seeds x "
+        if args.records:  # one line per seed: runs on several processes can be summarised together
+            with open(args.records, "a") as fh:
+                fh.write(json.dumps({"seed": s, "frames": args.frames, "contrast": args.contrast, "noise": args.noise,
+                                     "errors_mm": {m: errs[m][row].tolist() for m in methods},
+                                     "time_s": {m: t_frame[m][-args.frames:] for m in methods}}) + "\n")
+    report_tracking(args, errs, t_frame, methods, len(seeds), results)
+
+
+def report_tracking(args, errs: dict, t_frame: dict, methods: list, n_seeds: int, results: dict) -> None:
+    """Section 2's table, plot and JSON fields from errors (seeds, frames) per method."""
+    print(f"\n2. Tracking, low contrast (x{args.contrast}, +{args.noise} noise), {n_seeds} seeds x "
           f"{args.frames} frames, start from the true first pose")
     print("frame  " + "  ".join(f"{m:>22s}" for m in methods))
     for k in range(args.frames):
@@ -425,7 +443,27 @@ def tracking(args, model, body, geo, cams, lik, results: dict) -> None:
          args.out / "tracking_per_frame.png", "Low-contrast tracking, mean +- sd over seeds")
     results["tracking_mean_mm_after_frame3"] = {m: round(float(np.nanmean(errs[m][:, skip:])), 1) for m in methods}
     results["tracking_time_per_frame_s"] = {m: round(float(np.mean(t_frame[m])), 2) for m in methods}
-    results["tracking_seeds"], results["tracking_frames"] = args.seeds, args.frames
+    results["tracking_seeds"], results["tracking_frames"] = n_seeds, args.frames
+
+
+def summarise_tracking(args) -> int:
+    """Section 2 over the records of one or more runs (--records), one row per seed."""
+    try:
+        recs = [json.loads(line) for path in args.summarise_tracking
+                for line in Path(path).read_text().splitlines() if line.strip()]
+        recs = list({r["seed"]: r for r in recs}.values())  # a seed run twice counts once
+        methods = list(recs[0]["errors_mm"])
+        args.frames, args.contrast, args.noise = recs[0]["frames"], recs[0]["contrast"], recs[0]["noise"]
+        errs = {m: np.array([r["errors_mm"][m] for r in recs], float) for m in methods}
+        t_frame = {m: [t for r in recs for t in r["time_s"][m]] for m in methods}
+    except (OSError, ValueError, KeyError, IndexError) as exc:
+        print(f"bench/loose_limbed.py: --summarise-tracking: {exc}", file=sys.stderr)
+        return 1
+    results: dict = {"tracking_seed_list": sorted(r["seed"] for r in recs)}
+    args.out.mkdir(parents=True, exist_ok=True)
+    report_tracking(args, errs, t_frame, methods, len(recs), results)
+    print(json.dumps({"loose_limbed": results}))
+    return 0
 
 
 if __name__ == "__main__":
