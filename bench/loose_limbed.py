@@ -291,6 +291,7 @@ def main() -> int:
     ap.add_argument("--model", type=Path, default=None, help="model YAML (default config/loose_limbed_model.yaml)")
     ap.add_argument("--init-scenes", type=int, default=5)
     ap.add_argument("--iterations", type=int, default=10, help="BP iterations for initialisation")
+    ap.add_argument("--init-particles", type=int, default=100, help="belief samples per part for initialisation")
     ap.add_argument("--seeds", type=int, default=10, help="tracking seeds")
     ap.add_argument("--seed-start", type=int, default=0, help="first tracking seed (seeds start.. start+N-1)")
     ap.add_argument("--records", type=Path, default=None,
@@ -352,7 +353,8 @@ def initialisation(args, model, body, geo, cams, lik, results: dict) -> None:
     for s in range(args.init_scenes):
         scene = Scene(body, cams, seed=s, t0=TEST_START_S + 0.4 * s, n_frames=1, contrast=1.0, noise=0.0)
         views = scene.views(0)
-        bp = LooseLimbedBP(model, geo, lik, NBPConfig(), seed=s)
+        nbp = NBPConfig(n_particles=args.init_particles, n_exclusive=args.init_particles // 2)
+        bp = LooseLimbedBP(model, geo, lik, nbp, seed=s)
         tracker = LooseLimbedTracker(bp, Shouter(geo, lik, seed=s), TrackerConfig(init_iterations=args.iterations))
         stamps = [time.perf_counter()]
 
