@@ -105,8 +105,13 @@ def test_particle_tracker_and_object_features_over_dds(env, probe, tmp_path):
     finally:
         for p in procs.values():
             p.terminate()
-        for p in procs.values():
-            p.wait(timeout=20)
+        for k, p in procs.items():
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+                raise AssertionError(f"{k} did not exit within 20 s of SIGTERM:\n{all_logs()}") from None
     truth = {fr.stamp_ns: fr for fr in frames}
     for bodies in (bodies3d, bodies2d):
         assert [ns_from_time(b.header.stamp) for b in bodies] == [fr.stamp_ns for fr in frames[1:]]

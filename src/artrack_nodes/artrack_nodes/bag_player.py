@@ -93,6 +93,7 @@ class BagPlayerNode(Node):
     def _load_extra(self, topics: list[str]) -> dict:
         """{log stamp: [(publisher, serialised message)]} of the extra topics (read up front).
         Point clouds get the image QoS, other topics the result QoS."""
+        self.extra_pubs: list = []
         if not topics:
             return {}
         from artrack.bags import open_bag
@@ -109,6 +110,7 @@ class BagPlayerNode(Node):
                 image_qos = IMAGE_QOS_RELIABLE if self.p["lockstep"] else IMAGE_QOS_SENSOR
                 qos = image_qos if types[t].endswith("/PointCloud2") else RESULT_QOS
                 pubs[t] = self.create_publisher(msgs().cls(types[t]), t, qos)
+            self.extra_pubs = list(pubs.values())
             for topic, stamp, data in bag.messages(topics, raw=True):
                 out.setdefault(int(stamp), []).append((pubs[topic], bytes(data)))
         return out
@@ -120,6 +122,8 @@ class BagPlayerNode(Node):
     def _graph_ready(self) -> bool:
         if self.pubs.subscriber_count() < 1:
             return False
+        if any(p.get_subscription_count() < 1 for p in self.extra_pubs):
+            return False  # e.g. a particle_tracker still starting: it would miss the first frames
         if self.p["wait_for_recorder"] and not self._recorder_ready():
             return False
         return not self.lockstep or self.count_publishers(BODY_TOPIC) >= 1
