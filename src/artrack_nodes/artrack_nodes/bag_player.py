@@ -43,7 +43,8 @@ PARAMS = [
     ("wait_for_recorder", False, "also wait until a recorder subscribes to the body, prediction, blob and prior "
                                  "topics before starting"),
     ("extra_topics", [""], "further per-frame topics to replay with each frame's images, matched by stamp "
-                           "(e.g. /cameras/rgbd/points, /artrack/stick); empty: none"),
+                           "(e.g. /cameras/rgbd/points, /artrack/stick); playing starts once each has a "
+                           "subscriber (at most start_timeout_s); empty: none"),
     ("linger_for", [""], "TrackedBody topics of slower estimators (e.g. /artrack/particles/body): after the last "
                          "frame, end as soon as each has published a body for it (at most linger_s); empty: none"),
 ]
