@@ -106,12 +106,12 @@ def test_particle_tracker_and_object_features_over_dds(env, probe, tmp_path):
         for p in procs.values():
             p.terminate()
         for k, p in procs.items():
-            try:
-                p.wait(timeout=20)
+            try:  # generous: after a full suite on this machine DDS teardown has taken over 20 s
+                p.wait(timeout=60)
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
-                raise AssertionError(f"{k} did not exit within 20 s of SIGTERM:\n{all_logs()}") from None
+                raise AssertionError(f"{k} did not exit within 60 s of SIGTERM:\n{all_logs()}") from None
     truth = {fr.stamp_ns: fr for fr in frames}
     for bodies in (bodies3d, bodies2d):
         assert [ns_from_time(b.header.stamp) for b in bodies] == [fr.stamp_ns for fr in frames[1:]]
