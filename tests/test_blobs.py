@@ -86,6 +86,8 @@ def render(parts: dict[str, tuple], frame: int, noise: float = 2.0
 
 def make_tracker(**kw) -> BlobTracker2D:
     kw.setdefault("startup_settle_frames", 0)  # short test sequences (the delay has its own test)
+    # the fixture's parts are separate discs, not one connected silhouette (that rule has its own test)
+    kw.setdefault("connected_to", "")
     cfg = BlobTrackerConfig(background_seed_frames=SEED, background_seed_stride=1, **kw)
     return BlobTracker2D("cam01", LABELS, CLASSES, cfg)
 
@@ -346,6 +348,28 @@ def test_distractor_far_from_the_prior_does_not_steal_the_label():
         blobs = by_label(tracker.step(img, None))
         assert np.linalg.norm(blobs["l_hand"].mean - np.array(parts["l_hand"][1])) < 1.0
         assert np.linalg.norm(blobs["r_hand"].mean - np.array(parts["r_hand"][1])) < 1.0
+
+
+def test_a_label_does_not_sit_on_foreground_detached_from_the_torso():
+    """``connected_to``: a skin disc detached from the person (a ghost where they stood while the
+    background seeded, another person's hand) inside the hand's gate does not take the label; the
+    hand touching the torso does. Without the rule the label spreads over both."""
+    parts = default_parts()
+    parts["l_hand"] = ("disc", (160.0 - 34.0, 150.0), 8.0, SKIN_BGR)  # touches the torso's rim
+    detached = {"ghost": ("disc", (160.0 - 70.0, 150.0), 8.0, SKIN_BGR)}
+    prior = priors_for(parts)
+    prior = [p if p.label != "l_hand" else Prior2D("l_hand", np.array([108.0, 150.0]), disc_cov(40.0), 0.8)
+             for p in prior]
+    means = {}
+    for rule in ("torso", ""):
+        tracker = make_tracker(connected_to=rule)
+        seed_with_moving_person(tracker)
+        img, _ = render({**detached, **parts}, 90)
+        blobs = by_label(tracker.step(img, prior))
+        means[rule] = blobs["l_hand"].mean
+        assert np.linalg.norm(blobs["torso"].mean - np.array(parts["torso"][1])) < 2.0
+    assert np.linalg.norm(means["torso"] - np.array(parts["l_hand"][1])) < 1.0
+    assert means[""][0] < parts["l_hand"][1][0] - 10.0  # pulled towards the detached disc
 
 
 def test_confident_prior_wins_contested_pixels():

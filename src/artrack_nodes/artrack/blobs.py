@@ -57,8 +57,14 @@ inflated by ``temporal_inflation`` and ``temporal_motion_px``, c_k = 1,
 w = ``temporal_weight``). Labels only compete inside their gates (``roi_sigma``
 spatial Mahalanobis distance, ``colour_gate`` in colour); a foreground pixel
 outside every gate stays unlabelled (−1), so a look-alike far from the
-prediction (another person's hand) does not steal the label. Classification
-runs only on the foreground pixels inside the rectangles bounding the gates.
+prediction (another person's hand) does not steal the label. The person is one
+connected silhouette: with ``connected_to`` (default the torso) a pixel keeps its
+label only if its 8-connected foreground component (gaps up to ``connected_gap_px``
+closed) holds at least a quarter of the most ``connected_to`` pixels any component
+holds, so a label cannot settle on a detached region (a ghost of where the person
+stood while the background seeded; the ghost, no longer anyone's support, then
+heals). Classification runs only on the foreground pixels inside the rectangles
+bounding the gates.
 Each label's statistics (mean, covariance, colour mean and covariance, pixel
 count) are then re-estimated from its pixels (8-connected pieces smaller than
 ``min_component_fraction`` of its largest piece are dropped first: mixed rim
@@ -214,6 +220,13 @@ class BlobTrackerConfig:
     min_blob_pixels_width: float = 640.0
     #: a label's 8-connected pieces smaller than this fraction of its largest piece are dropped (0 = keep all)
     min_component_fraction: float = 0.1
+    #: while tracking, only foreground 8-connected to the pixels labelled with this label (the person's
+    #: trunk) is labelled: a part's label cannot sit on a detached region (a ghost of where the person
+    #: stood while the background seeded, another person's hand); '' = no such test
+    connected_to: str = "torso"
+    #: gaps up to this many px (full resolution) in the foreground count as connected for ``connected_to``
+    #: (thin limbs broken by the median filter or by clothing that matches the background)
+    connected_gap_px: float = 2.0
     #: at start-up, report at most this many skin blobs (largest first)
     startup_max_skin_blobs: int = 3
     #: at start-up, skip skin components larger than this fraction of the foreground (clothing)
@@ -282,7 +295,9 @@ class BlobTrackerConfig:
             raise bad("work_scale", "must be in (0, 1]")
         if not -0.95 <= self.skin_rg_correlation <= 0.95:
             raise bad("skin_rg_correlation", "must be in [-0.95, 0.95]")
-        non_negative = ("skin_min_intensity", "startup_skin_max_fraction", "temporal_velocity",
+        if not isinstance(self.connected_to, str):
+            raise bad("connected_to", "must be a label name or ''")
+        non_negative = ("connected_gap_px", "skin_min_intensity", "startup_skin_max_fraction", "temporal_velocity",
                         "temporal_motion_px", "min_component_fraction", "background_ghost_edge_ratio",
                         "prior_confidence_inflation")
         for name in non_negative:
@@ -827,6 +842,7 @@ class BlobTracker2D:
                 idx = sel[better]
                 best[idx] = score[better]
                 lab[idx] = m.index
+            self._keep_connected(fg, models, (x0, y0, x1, y1), xs - x0, ys - y0, lab)
             support[ys, xs] = lab
             t1 = time.perf_counter()
             min_px = self._min_pixels()
@@ -875,6 +891,30 @@ class BlobTracker2D:
         self._learn_colours(core_colours)
         self.timings_ms = {"classification": 1e3 * (t1 - t0), "statistics": 1e3 * (time.perf_counter() - t1)}
         return blobs, support >= 0
+
+    def _keep_connected(self, fg: np.ndarray, models: list[_ClassModel], box: tuple[int, int, int, int],
+                        cols: np.ndarray, rows: np.ndarray, lab: np.ndarray) -> None:
+        """Unlabel (−1 in ``lab``, in place) the pixels at (rows, cols) of the box (x0, y0, x1, y1)
+        whose foreground component holds less than a quarter of the largest share of
+        ``connected_to`` pixels (see the config); nothing changes when that label has no pixels."""
+        cfg = self.config
+        anchor = [m.index for m in models if self.labels[m.index] == cfg.connected_to]
+        if not anchor:
+            return
+        on_anchor = lab == anchor[0]
+        if not on_anchor.any():
+            return
+        x0, y0, x1, y1 = box
+        mask = np.ascontiguousarray(fg[y0:y1, x0:x1]).view(np.uint8)
+        gap = int(round(cfg.connected_gap_px * self._scale()[0]))
+        if gap > 0:
+            mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1)))
+        n, comp = cv2.connectedComponents(mask, connectivity=8)
+        ids = comp[rows, cols]
+        per = np.bincount(ids[on_anchor], minlength=n)
+        keep = per >= 0.25 * per.max()
+        keep[0] = False
+        lab[~keep[ids]] = -1
 
     def _bootstrap_colours(self, models: list[_ClassModel], ds2s: list[np.ndarray],
                            feats: list[np.ndarray]) -> None:
