@@ -86,8 +86,6 @@ def render(parts: dict[str, tuple], frame: int, noise: float = 2.0
 
 def make_tracker(**kw) -> BlobTracker2D:
     kw.setdefault("startup_settle_frames", 0)  # short test sequences (the delay has its own test)
-    # the fixture's parts are separate discs, not one connected silhouette (that rule has its own test)
-    kw.setdefault("connected_to", "")
     cfg = BlobTrackerConfig(background_seed_frames=SEED, background_seed_stride=1, **kw)
     return BlobTracker2D("cam01", LABELS, CLASSES, cfg)
 
@@ -370,6 +368,8 @@ def test_a_label_does_not_sit_on_foreground_detached_from_the_torso():
         assert np.linalg.norm(blobs["torso"].mean - np.array(parts["torso"][1])) < 2.0
     assert np.linalg.norm(means["torso"] - np.array(parts["l_hand"][1])) < 1.0
     assert means[""][0] < parts["l_hand"][1][0] - 10.0  # pulled towards the detached disc
+    with pytest.raises(InputError, match="connected_to"):
+        make_tracker(connected_to="pelvis")
 
 
 def test_confident_prior_wins_contested_pixels():

@@ -58,7 +58,7 @@ w = ``temporal_weight``). Labels only compete inside their gates (``roi_sigma``
 spatial Mahalanobis distance, ``colour_gate`` in colour); a foreground pixel
 outside every gate stays unlabelled (−1), so a look-alike far from the
 prediction (another person's hand) does not steal the label. The person is one
-connected silhouette: with ``connected_to`` (default the torso) a pixel keeps its
+connected silhouette: with ``connected_to`` (e.g. 'torso'; off by default) a pixel keeps its
 label only if its 8-connected foreground component (gaps up to ``connected_gap_px``
 closed) holds at least a quarter of the most ``connected_to`` pixels any component
 holds, so a label cannot settle on a detached region (a ghost of where the person
@@ -220,10 +220,11 @@ class BlobTrackerConfig:
     min_blob_pixels_width: float = 640.0
     #: a label's 8-connected pieces smaller than this fraction of its largest piece are dropped (0 = keep all)
     min_component_fraction: float = 0.1
-    #: while tracking, only foreground 8-connected to the pixels labelled with this label (the person's
-    #: trunk) is labelled: a part's label cannot sit on a detached region (a ghost of where the person
-    #: stood while the background seeded, another person's hand); '' = no such test
-    connected_to: str = "torso"
+    #: while tracking, only foreground 8-connected to the pixels labelled with this label (e.g. 'torso':
+    #: the person's trunk) is labelled: a part's label cannot sit on a detached region (a ghost of where
+    #: the person stood while the background seeded, another person's hand); '' = no such test (default:
+    #: it helped on some synthetic seeds and locked the loop onto a wrong start on others, README Status)
+    connected_to: str = ""
     #: gaps up to this many px (full resolution) in the foreground count as connected for ``connected_to``
     #: (thin limbs broken by the median filter or by clothing that matches the background)
     connected_gap_px: float = 2.0
@@ -602,6 +603,9 @@ class BlobTracker2D:
         if unknown:
             raise InputError(f"camera '{self.camera_name}': blob tracker config field 'part_colours' names "
                              f"unknown part '{unknown[0]}' (parts: {', '.join(self.labels)})")
+        if self.config.connected_to and self.config.connected_to not in self.labels:
+            raise InputError(f"camera '{self.camera_name}': blob tracker config field 'connected_to' names "
+                             f"unknown part '{self.config.connected_to}' (parts: {', '.join(self.labels)})")
         classes = {**(colour_classes or {}), **self.config.part_colours}
         self.colour_classes = {lab: str(classes.get(lab, lab)) for lab in self.labels}
         self.reset()
