@@ -17,8 +17,11 @@ Prints one row every ``--every`` frames::
     frame  MPJPE  head  lwr  rwr  yaw true/est  swap | label views:px[mm][>nearest] ...
 
 then a summary (first tracked frame, frames with the heading off by more than 45 deg, with
-hands / legs swapped, per-label seen share, 2-D px error, mislabelled share) and ends with
-one JSON line of the summary. Deterministic; run from the repository root::
+hands / legs swapped, per-label seen share, 2-D px error, mislabelled share, and the median
+offset, in the true link's frame, of the triangulated blob (seen in 3 or more views) from the
+body model's blob centre: a bias of the appearance model) and ends with one JSON line of the
+summary. ``--true-start FRAME`` re-seeds the skeleton with the true pose at that frame (the
+loop's drift from a perfect start, without the start-up). Deterministic; run from the repository root::
 
     .venv/bin/python bench/label_diagnosis.py --scene default --seed 3
 """
@@ -76,6 +79,8 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=6.0)
     ap.add_argument("--every", type=int, default=6, help="print every this many frames")
     ap.add_argument("--cache", default="/tmp/artrack_bench")
+    ap.add_argument("--true-start", type=int, default=-1, metavar="FRAME",
+                    help="re-seed the skeleton with the true pose at this frame (-1: its own start-up)")
     args = ap.parse_args()
     body = load_body_model()
     path = scene_bag(args.scene, 4, argparse.Namespace(**vars(args)), body)
@@ -88,13 +93,26 @@ def main() -> int:
     labels = list(body.blob_labels)
     names = list(body.joint_names)
     J = {n: names.index(n) for n in ("head", "l_wrist", "r_wrist", "l_knee", "r_knee")}
+    rest_means, _ = body.blob_gaussians(body.rest_pose())
+    rest_T = body.forward_kinematics(body.rest_pose())
+    model_local = {lab: (np.linalg.inv(rest_T[body.link_names.index(lab)]) @ np.append(rest_means[k], 1.0))[:3]
+                   for k, lab in enumerate(labels)}
+    offsets: dict[str, list[np.ndarray]] = {lab: [] for lab in labels}
     rows = []
     for stamp, images in Progress(scene.frames(), total=scene.n_frames, label="label diagnosis"):
-        res = pipe.step(stamp, images)
         t = (int(stamp) - START_STAMP_NS) * 1e-9 - SCENES[args.scene].get("empty_s", 0.0)
+        if round((int(stamp) - START_STAMP_NS) * cfg.fps * 1e-9) == args.true_start and t >= 0:
+            pipe.skeleton.estimator.reset()
+            pipe.skeleton.estimator.reseed(int(stamp) - 1, body.joint_positions(pose_at(cfg.motion_name, t, body)))
+        res = pipe.step(stamp, images)
         if t < 0 or not np.all(np.isfinite(res.estimate.joints)):
             continue
         theta = pose_at(cfg.motion_name, t, body)
+        T = body.forward_kinematics(theta)
+        for lab, b in pipe.skeleton.estimator.last_observed.items():
+            if len(b.cameras) >= 3:
+                offsets[lab].append((np.linalg.inv(T[body.link_names.index(lab)]) @ np.append(b.mean, 1.0))[:3]
+                                    - model_local[lab])
         true_blobs = dict(zip(labels, body.blob_gaussians(theta)[0], strict=True))
         tj = body.joint_positions(theta)
         est = res.estimate.joints
@@ -148,14 +166,18 @@ def main() -> int:
             "px": float(np.mean(px)) if px else math.nan,
             "obs3d_mm": float(np.median([o["mm"] for o in obs])) if obs else math.nan,
             "mislabelled_share": sum(o["nearest"] != lab for o in obs) / max(len(obs), 1),
+            "centre_offset_mm": (1e3 * np.median(offsets[lab], axis=0)).round(1).tolist() if offsets[lab] else None,
         }
     print(f"\ntracked {len(rows)} frames from frame {summary['first_tracked_frame']}; "
           f"MPJPE {summary['mpjpe_mm']:.1f} mm; "
           f"heading off > {HEADING_LIMIT_DEG:.0f} deg in {summary['heading_off_frames']}, hands swapped in "
           f"{summary['hands_swapped_frames']}, legs swapped in {summary['legs_swapped_frames']} of them")
-    print(f"{'label':<9}{'views/4':>8}{'2-D px':>8}{'3-D mm (median)':>17}{'mislabelled %':>15}")
+    print(f"{'label':<9}{'views/4':>8}{'2-D px':>8}{'3-D mm (median)':>17}{'mislabelled %':>15}"
+          "  blob - model centre, link frame x y z mm (median)")
     for lab, s in summary["labels"].items():
-        print(f"{lab:<9}{s['mean_views']:8.2f}{s['px']:8.1f}{s['obs3d_mm']:17.0f}{100 * s['mislabelled_share']:15.0f}")
+        off = s["centre_offset_mm"]
+        print(f"{lab:<9}{s['mean_views']:8.2f}{s['px']:8.1f}{s['obs3d_mm']:17.0f}{100 * s['mislabelled_share']:15.0f}"
+              + ("  " + " ".join(f"{v:6.0f}" for v in off) if off else "  -"))
     print(json.dumps(summary))
     return 0
 
