@@ -127,7 +127,7 @@ def test_capsules_and_blobs(body):
     blobs = body.blobs3d(theta)
     assert [b.label for b in blobs] == body.blob_labels
     head = blobs[body.blob_labels.index("head")]
-    assert head.mean[2] == pytest.approx(0.95 + 0.10 + 0.42 + 0.075)  # pelvis, torso, neck offsets + blob centre
+    assert head.mean[2] == pytest.approx(1.62)
     assert np.all(np.linalg.eigvalsh(head.cov) > 0)
     pb = body.capsules(np.stack([theta, theta]))[0]
     assert pb.shape == (2, S, 3)
