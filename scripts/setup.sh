@@ -60,9 +60,10 @@ if fixed:
     print(f"setup: fixed interpreter paths in {fixed} CMake files")
 PY
 
-# Build the workspace when a source of a package changed since the last build.
+# Build the workspace when a source of a package, or config/ (installed into
+# share/artrack_nodes/config, which the installed nodes and `artrack` read), changed since the last build.
 STAMP_BUILD=$ROOT/ros2_ws/install/.artrack_build_stamp
-if [ ! -f "$STAMP_BUILD" ] || [ -n "$(find src -newer "$STAMP_BUILD" -type f -print -quit)" ]; then
+if [ ! -f "$STAMP_BUILD" ] || [ -n "$(find src config -newer "$STAMP_BUILD" -type f -print -quit)" ]; then
   echo "setup: colcon build"
   # shellcheck disable=SC1091
   . "$ROOT/scripts/env.sh" --no-workspace
