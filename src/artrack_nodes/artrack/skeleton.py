@@ -307,8 +307,11 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
     xy = out.startup.start_xy
     if len(xy) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in xy):
         raise InputError("skeleton config: field 'startup.start_xy' must be two finite numbers (x, y), m")
-    if out.fit.ground_sigma_m < 0 or out.startup.start_radius_m < 0:
-        raise InputError("skeleton config: fields 'fit.ground_sigma_m' and 'startup.start_radius_m' must be >= 0")
+    non_negative = (("fit.ground_sigma_m", out.fit.ground_sigma_m),
+                    ("startup.start_radius_m", out.startup.start_radius_m))
+    for name, value in non_negative:
+        if value < 0:
+            raise InputError(f"skeleton config: field '{name}' must be >= 0 (got {value!r})")
     if out.measurement.blob_cov not in ("shape+state", "state"):
         raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
     return out
@@ -684,18 +687,6 @@ def match_skin_blobs(
 
 
 # =========================================================================== estimators
-def _empty_estimate(body: BodyModel, stamp_ns: int, status: int) -> BodyEstimate:
-    return BodyEstimate(
-        stamp_ns=int(stamp_ns),
-        joint_names=list(body.joint_names),
-        joints=np.full((len(body.joint_names), 3), np.nan),
-        links=[],
-        blobs=[],
-        status=status,
-        quality=0.0,
-    )
-
-
 class _Estimator:
     """Shared machinery: triangulation, status, initialisation, output."""
 
@@ -822,7 +813,7 @@ class _Estimator:
                 return self._estimate(stamp_ns)
             if self.theta is None:
                 self.stamp_ns = stamp_ns
-                return _empty_estimate(self.body, stamp_ns, STATUS_INITIALIZING)
+                return BodyEstimate.empty(self.body.joint_names, stamp_ns, STATUS_INITIALIZING)
         t1 = time.perf_counter()
         self._step(stamp_ns, obs)  # may add its own stages to timings_ms
         stages = sum(v for k, v in self.timings_ms.items() if k != "triangulation")
@@ -917,7 +908,7 @@ class _Estimator:
         While LOST the prediction carries no blobs, so that the 2-D trackers fall back to
         their start-up classes and the body can be found again."""
         if self.theta is None:
-            return _empty_estimate(self.body, stamp_ns, self.status)
+            return BodyEstimate.empty(self.body.joint_names, stamp_ns, self.status)
         out = self._predict(int(stamp_ns))
         if self.status == STATUS_LOST:
             out.blobs = []

@@ -98,3 +98,10 @@ class BodyEstimate:
     blobs: list[Blob3D]
     status: int = STATUS_TRACKING
     quality: float = 1.0
+
+    @classmethod
+    def empty(cls, joint_names: list[str], stamp_ns: int, status: int) -> BodyEstimate:
+        """A body with no estimate (NaN joints, no links or blobs, quality 0) at ``stamp_ns``."""
+        names = list(joint_names)
+        return cls(stamp_ns=int(stamp_ns), joint_names=names, joints=np.full((len(names), 3), np.nan),
+                   links=[], blobs=[], status=status, quality=0.0)

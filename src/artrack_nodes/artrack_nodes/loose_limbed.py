@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
 from rclpy.node import Node
 
 from artrack.body_model import load_body_model
@@ -131,9 +130,7 @@ class LooseLimbedNode(Node):
         if est is None:
             if not self.p["lockstep"]:
                 return
-            n = len(self.body.joint_names)
-            est = BodyEstimate(stamp_ns=stamp, joint_names=list(self.body.joint_names),
-                               joints=np.full((n, 3), np.nan), links=[], blobs=[], status=STATUS_LOST, quality=0.0)
+            est = BodyEstimate.empty(self.body.joint_names, stamp, STATUS_LOST)
         self.pub.publish(body_msg(msgs(), est, self.p["world_frame"], int(self.p["body_id"])))
 
 
