@@ -51,7 +51,6 @@ def _check_synth_args(args: argparse.Namespace) -> None:
         raise InputError(f"--empty-start {args.empty_start:g}: must be >= 0 and shorter than --duration")
     if not (math.isfinite(args.noise) and args.noise >= 0):
         raise InputError(f"--noise {args.noise:g}: must be >= 0")
-    args.blackout_span = _parse_blackout(args.blackout, args.duration) if getattr(args, "blackout", None) else None
 
 
 def _parse_blackout(text: str, duration: float) -> tuple[float, float]:
@@ -72,12 +71,13 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from .synth import SceneConfig, generate_scene, scene_cameras
 
     _check_synth_args(args)
+    blackout = _parse_blackout(args.blackout, args.duration) if args.blackout else None
     if args.motion.startswith("stick_"):
         return _synth_stick(args)
     config = SceneConfig(
         n_cameras=args.cameras, width=args.width, height=args.height, fps=args.fps, duration_s=args.duration,
         seed=args.seed, noise_sigma=args.noise, motion=args.motion, occlusion=args.occlusion,
-        distractor=args.distractor, empty_s=args.empty_start, blackout=args.blackout_span,
+        distractor=args.distractor, empty_s=args.empty_start, blackout=blackout,
     )
     body = load_body_model(args.body_model)
     cameras = scene_cameras(config)
