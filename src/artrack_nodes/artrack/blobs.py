@@ -599,13 +599,12 @@ class BlobTracker2D:
             raise InputError(f"camera '{self.camera_name}': '{FOREGROUND}'/'{SKIN}' are start-up classes, "
                              "not link labels")
         self.config = config or BlobTrackerConfig()
-        unknown = sorted(set(self.config.part_colours) - set(self.labels))
-        if unknown:
-            raise InputError(f"camera '{self.camera_name}': blob tracker config field 'part_colours' names "
-                             f"unknown part '{unknown[0]}' (parts: {', '.join(self.labels)})")
-        if self.config.connected_to and self.config.connected_to not in self.labels:
-            raise InputError(f"camera '{self.camera_name}': blob tracker config field 'connected_to' names "
-                             f"unknown part '{self.config.connected_to}' (parts: {', '.join(self.labels)})")
+        named = [("part_colours", part) for part in sorted(self.config.part_colours)]
+        named += [("connected_to", self.config.connected_to)] if self.config.connected_to else []
+        for name, part in named:
+            if part not in self.labels:
+                raise InputError(f"camera '{self.camera_name}': blob tracker config field '{name}' names "
+                                 f"unknown part '{part}' (parts: {', '.join(self.labels)})")
         classes = {**(colour_classes or {}), **self.config.part_colours}
         self.colour_classes = {lab: str(classes.get(lab, lab)) for lab in self.labels}
         self.reset()
