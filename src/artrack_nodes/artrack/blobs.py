@@ -115,6 +115,7 @@ __all__ = [
     "ColourModel",
     "benchmark",
     "colour_features",
+    "skin_model",
 ]
 
 #: Start-up class: the whole foreground silhouette.
@@ -362,7 +363,9 @@ class ColourModel:
         return d2
 
 
-def _skin_model(config: BlobTrackerConfig) -> ColourModel:
+def skin_model(config: BlobTrackerConfig) -> ColourModel:
+    """The configured default skin colour model (``skin_mean``, ``skin_sigma``, ``skin_rg_correlation``,
+    ``skin_min_intensity``)."""
     sr, sg, si = config.skin_sigma
     rho = config.skin_rg_correlation
     cov = np.array([[sr * sr, rho * sr * sg, 0.0], [rho * sr * sg, sg * sg, 0.0], [0.0, 0.0, si * si]])
@@ -629,7 +632,7 @@ class BlobTracker2D:
         """Current colour model of a colour class (the configured default until learned)."""
         m = self.colour_models.get(colour_class)
         if m is None:
-            m = _skin_model(self.config) if colour_class == SKIN else _unknown_model(self.config)
+            m = skin_model(self.config) if colour_class == SKIN else _unknown_model(self.config)
             self.colour_models[colour_class] = m
         return m
 

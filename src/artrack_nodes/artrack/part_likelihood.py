@@ -11,10 +11,19 @@ outlines (u = ±1) should lie on edges, and points just outside
 silhouette of the torso behind it); for the torso, points at the shoulders'
 width along its own y axis should be foreground just below its distal end
 and background just above it (without them the torso slides down the
-equally wide column of the legs, and its twist is unobservable). Views are independent given the part:
+equally wide column of the legs, and its twist is unobservable). The head
+also carries an appearance term, the face: a silhouette cannot tell a person
+facing the camera from one turned away (the whole body mirrored, left and right
+swapped, fits the same outline), but the face is skin and the back of the head
+is hair. A ring of points around the head at ``face_height`` is sampled; each
+one facing the camera should be skin (``skin`` map: the blob tracker's default
+skin colour model, ``blobs.skin_model``) where it is in front (within
+``face_half_angle`` of the head's forward axis) and not skin where it is behind.
+Views are independent given the part:
 
     log φ(X) = − Σ_views [ w_fg · mean_in (1 − fg)² + w_edge · mean_outline (1 − edge)²
-                           + w_bg · mean_out fg² + w_cap · (mean_above fg² + mean_shoulders (1 − fg)²) ]
+                           + w_bg · mean_out fg² + w_cap · (mean_above fg² + mean_shoulders (1 − fg)²)
+                           + w_face · mean_ring (skin − front)² ]
 
 (the squared-residual form of Deutscher's silhouette/edge cost). The same
 function scores the annealed kinematic-tree filter (through all 10 parts).
@@ -30,6 +39,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .blobs import BlobTrackerConfig, colour_features, skin_model
 from .body_parts import PartGeometry, cylinder_points
 from .cameras import Camera
 
@@ -52,15 +62,23 @@ class LikelihoodConfig:
     w_cap: float = 3.0          #: weight of that term per view
     n_axial: int = 6            #: samples along the cylinder axis
     interior: tuple[float, ...] = (-0.5, 0.0, 0.5)  #: offsets across the cylinder (× radius)
+    face_parts: tuple[str, ...] = ("head",)  #: parts scored by the face term (module docstring; () = none)
+    w_face: float = 3.0          #: weight of the face term per view
+    face_height: float = 0.13    #: m along the head's axis from its origin: the ring of face points
+    face_ring: int = 12          #: points on that ring (on the cylinder's surface, × radius)
+    face_half_angle: float = 1.0  #: rad from the forward (+x) axis: the face; behind (beyond π − this): hair
+    skin_blur_sigma_px: float = 1.0  #: Gaussian blur of the skin map, px
 
 
 @dataclass
 class ViewEvidence:
-    """Evidence maps of one camera: fg, edge (H, W) float32 in [0, 1]."""
+    """Evidence maps of one camera: fg, edge and skin (H, W) float32 in [0, 1] (skin: None = no
+    colour evidence, the face term is then left out)."""
 
     camera: Camera
     fg: np.ndarray
     edge: np.ndarray
+    skin: np.ndarray | None = None
 
 
 def view_evidence(camera: Camera, image_bgr: np.ndarray, background_bgr: np.ndarray,
@@ -78,7 +96,22 @@ def view_evidence(camera: Camera, image_bgr: np.ndarray, background_bgr: np.ndar
     if cfg.blur_sigma_px > 0:
         fg = cv2.GaussianBlur(fg, (0, 0), cfg.blur_sigma_px)
         edge = cv2.GaussianBlur(edge, (0, 0), cfg.blur_sigma_px)
-    return ViewEvidence(camera, fg.astype(np.float32), edge.astype(np.float32))
+    skin = None
+    if cfg.face_parts and cfg.w_face > 0:
+        skin = skin_map(image_bgr, cfg.skin_blur_sigma_px)
+    return ViewEvidence(camera, fg.astype(np.float32), edge.astype(np.float32), skin)
+
+
+def skin_map(image_bgr: np.ndarray, blur_sigma_px: float = 0.0) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: exp(−½ d²) of every pixel's colour distance d to the default skin model
+    (``blobs.skin_model``; 0 where darker than its minimum intensity), optionally blurred."""
+    model = skin_model(BlobTrackerConfig())
+    cfg = BlobTrackerConfig()
+    d2 = model.distance2(colour_features(image_bgr).reshape(-1, 3), cfg).reshape(image_bgr.shape[:2])
+    skin = np.exp(-0.5 * np.minimum(d2, 50.0)).astype(np.float32)
+    if blur_sigma_px > 0:
+        skin = cv2.GaussianBlur(skin, (0, 0), blur_sigma_px)
+    return skin
 
 
 def frame_evidence(cameras: Sequence[Camera], images: dict[str, np.ndarray], backgrounds: dict[str, np.ndarray],
@@ -87,8 +120,8 @@ def frame_evidence(cameras: Sequence[Camera], images: dict[str, np.ndarray], bac
     return [view_evidence(c, images[c.name], backgrounds[c.name], config) for c in cameras]
 
 
-def sample_maps(view: ViewEvidence, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(fg, edge) values (N,) at world points (N, 3), nearest pixel; 0 outside the image or behind the camera."""
+def _pixels(view: ViewEvidence, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest pixel (row, column) (N,) of world points (N, 3) and whether it is in the image and in front."""
     uv, depth = view.camera.project(points)
     h, w = view.fg.shape
     # far off or behind the camera (masked below): keep the integer cast defined
@@ -96,6 +129,12 @@ def sample_maps(view: ViewEvidence, points: np.ndarray) -> tuple[np.ndarray, np.
     iu = np.rint(uv[:, 0]).astype(np.int64)
     iv = np.rint(uv[:, 1]).astype(np.int64)
     ok = (depth > 0.05) & (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
+    return iv, iu, ok
+
+
+def sample_maps(view: ViewEvidence, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(fg, edge) values (N,) at world points (N, 3), nearest pixel; 0 outside the image or behind the camera."""
+    iv, iu, ok = _pixels(view, points)
     fg = np.zeros(len(points), np.float32)
     ed = np.zeros(len(points), np.float32)
     fg[ok] = view.fg[iv[ok], iu[ok]]
@@ -132,6 +171,9 @@ class PartLikelihood:
                               for h in (cfg.cap_offset, -cfg.cap_offset)])
             Rq = Rotation.from_quat(np.asarray(quat, float).reshape(-1, 4)).as_matrix()
             cap = pos[:, None, None, :] + np.einsum("nab,hsb->nhsa", Rq, local)
+        face = None
+        if self.geometry.names[part] in cfg.face_parts and cfg.w_face > 0:
+            face = self._face_ring(part, pos, np.asarray(quat, float).reshape(-1, 4))
         inner = np.asarray(cfg.interior, float)
         offs = np.concatenate([inner, [-1.0, 1.0, -cfg.outside, cfg.outside]])
         n_in = len(inner)
@@ -157,7 +199,40 @@ class PartLikelihood:
                 fgc, _ = sample_maps(view, cap.reshape(-1, 3))
                 fgc = fgc.reshape(n, 2, 2)
                 total -= cfg.w_cap * (np.mean(fgc[:, 0] ** 2, axis=1) + np.mean((1.0 - fgc[:, 1]) ** 2, axis=1))
+            if face is not None and view.skin is not None:
+                total -= cfg.w_face * self._face_cost(view, *face)
         return total
+
+    def _face_ring(self, part: int, pos: np.ndarray, quat: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The face ring of part poses (N): points (N, K, 3) world, outward normals (N, K, 3) and the
+        expected skin (K,) (1 in front, 0 behind, NaN on the sides: not scored)."""
+        cfg, g = self.config, self.geometry
+        phi = np.linspace(-np.pi, np.pi, cfg.face_ring, endpoint=False)
+        local_n = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=1)  # part frame, head x = forward
+        s = (cfg.face_height - g.start[part]) / max(g.end[part] - g.start[part], 1e-9)
+        radius = g.r_start[part] + np.clip(s, 0.0, 1.0) * (g.r_end[part] - g.r_start[part])
+        R = Rotation.from_quat(quat).as_matrix()
+        normals = np.einsum("nab,kb->nka", R, local_n)
+        centre = pos + cfg.face_height * np.einsum("nab,b->na", R, g.axis[part])
+        points = centre[:, None, :] + radius * normals
+        expected = np.full(len(phi), np.nan)
+        expected[np.abs(phi) <= cfg.face_half_angle] = 1.0
+        expected[np.abs(phi) >= np.pi - cfg.face_half_angle] = 0.0
+        return points, normals, expected
+
+    @staticmethod
+    def _face_cost(view: ViewEvidence, points: np.ndarray, normals: np.ndarray, expected: np.ndarray
+                   ) -> np.ndarray:
+        """(N,) mean (skin − expected)² over the face-ring points that face the camera and are scored."""
+        n, k = points.shape[:2]
+        iv, iu, ok = _pixels(view, points.reshape(-1, 3))
+        skin = np.zeros(n * k, np.float32)
+        skin[ok] = view.skin[iv[ok], iu[ok]]
+        facing = np.einsum("nka,nka->nk", normals, view.camera.center - points) > 0
+        use = facing & np.isfinite(expected)[None, :] & ok.reshape(n, k)
+        r2 = np.where(use, (skin.reshape(n, k) - np.nan_to_num(expected)[None, :]) ** 2, 0.0)
+        return r2.sum(axis=1) / np.maximum(use.sum(axis=1), 1)
 
     def log_likelihood_parts(self, pos: np.ndarray, quat: np.ndarray, views: Sequence[ViewEvidence]) -> np.ndarray:
         """(N, P) log φ of every part for whole-body poses pos (N, P, 3), quat (N, P, 4)."""
