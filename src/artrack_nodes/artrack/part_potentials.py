@@ -304,8 +304,11 @@ def train_model(body: BodyModel, geometry: PartGeometry, sequences: list[np.ndar
                 n_components: int = 3, outlier_weight: float = 0.02, seed: int = 0,
                 spatial_floor: tuple[float, float] = (9e-4, 1e-2),
                 temporal_floor: tuple[float, float] = (4e-4, 4e-3),
-                provenance: dict[str, Any] | None = None) -> LooseLimbedModel:
-    """Fit every potential from training sequences [(T_k, n_dof)] at ``fps``."""
+                provenance: dict[str, Any] | None = None,
+                spatial_sequences: list[np.ndarray] = ()) -> LooseLimbedModel:
+    """Fit every potential from training sequences [(T_k, n_dof)] at ``fps``; ``spatial_sequences``
+    (poses (T_k, n_dof)) enter the spatial potentials only (poses that cover the joints' range, whose
+    motion is not a person's)."""
     pos_l, quat_l, nxt_p, nxt_q = [], [], [], []
     for seq in sequences:
         pos, quat = parts_from_theta(body, geometry, seq)
@@ -313,12 +316,16 @@ def train_model(body: BodyModel, geometry: PartGeometry, sequences: list[np.ndar
         quat_l.append(quat)
         nxt_p.append(pos[1:])
         nxt_q.append(quat[1:])
-    pos = np.concatenate(pos_l)
-    quat = np.concatenate(quat_l)
     cur_p = np.concatenate([p[:-1] for p in pos_l])
     cur_q = np.concatenate([q[:-1] for q in quat_l])
     nxt_p = np.concatenate(nxt_p)
     nxt_q = np.concatenate(nxt_q)
+    for seq in spatial_sequences:
+        pos, quat = parts_from_theta(body, geometry, seq)
+        pos_l.append(pos)
+        quat_l.append(quat)
+    pos = np.concatenate(pos_l)
+    quat = np.concatenate(quat_l)
     idx = {n: k for k, n in enumerate(PART_NAMES)}
     spatial = {}
     for a, b in SPATIAL_EDGES:
