@@ -17,6 +17,8 @@ from artrack.loose_limbed import (
     KernelMixture,
     LooseLimbedBP,
     LooseLimbedGraph,
+    MapAssembler,
+    MapConfig,
     NBPConfig,
     Particles,
     estimate_parts,
@@ -33,6 +35,7 @@ from artrack.part_potentials import (
     relative_pose,
     rot_residual,
     save_model,
+    train_model,
 )
 from artrack.shouters import Shouter, hull_points
 from artrack.synth import Renderer, default_rig
@@ -143,6 +146,24 @@ def test_learned_potentials_place_the_head_above_the_torso(model, body, geo):
     pos, quat = parts_from_theta(body, geo, pose_at("self_occlusion", 5.5, body))
     t, q = relative_pose(pos[:1], quat[:1], pos[1:2], quat[1:2])
     assert g.logpdf(t, q)[0] > g.logpdf(t + [0.0, 0.0, 0.2], q)[0] + 5
+
+
+def test_spatial_only_sequences_widen_the_spatial_potentials_not_the_temporal_ones(body, geo):
+    rest = body.rest_pose()
+    still = np.tile(rest, (40, 1))  # arms hanging, a little sway
+    still[:, 6:] += np.random.default_rng(0).normal(0.0, 0.02, (40, body.n_dof - 6))
+    raised = still.copy()
+    arm = body.link_names.index("l_upper_arm")
+    start = 6 + sum(body.links[i].n_dof for i in range(1, arm))
+    raised[:, start] = np.linspace(0.0, 2.5, 40)  # the left arm raised sideways, step by step
+    base = train_model(body, geo, [still], 30.0)
+    wide = train_model(body, geo, [still], 30.0, spatial_sequences=[raised])
+    pos, quat = parts_from_theta(body, geo, raised[-1])
+    t, q = relative_pose(pos[:1], quat[:1], pos[2:3], quat[2:3])  # the raised upper arm in the torso's frame
+    ga, gb = base.spatial[("torso", "l_upper_arm")], wide.spatial[("torso", "l_upper_arm")]
+    assert gb.logpdf(t, q)[0] > ga.logpdf(t, q)[0] + 5
+    for part in PART_NAMES:  # the temporal potentials come from the motions alone
+        assert np.allclose(base.next[part].mean_t, wide.next[part].mean_t)
 
 
 # ------------------------------------------------------------------ BP machinery
@@ -265,7 +286,97 @@ def test_tracker_follows_a_moving_body(model, body, geo):
     assert np.mean(np.linalg.norm(joints - truth, axis=1)) < 0.05
 
 
+def _joint_score(bp, pos, quat):
+    """Σ log φ + Σ log ψ (parent -> child) of one configuration, as MapAssembler maximises it."""
+    idx = {n: k for k, n in enumerate(PART_NAMES)}
+    total = sum(float(bp.unary(p, pos[p:p + 1], quat[p:p + 1], [])[0]) for p in range(10))
+    for a, b in SPATIAL_EDGES:
+        i, j = idx[a], idx[b]
+        total += float(bp.spatial_log_potential(i, j, pos[i:i + 1], quat[i:i + 1], pos[j:j + 1], quat[j:j + 1])[0])
+    return total
+
+
+def test_map_assembly_is_the_exact_maximum_over_the_candidates(model, body, geo):
+    """Two candidates per part (the truth and a decoy 8 cm / 0.4 rad off): the dynamic programme's body
+    scores as the best of all 2^10 combinations, found by enumeration."""
+    import itertools
+
+    pos, quat = parts_from_theta(body, geo, pose_at("self_occlusion", 5.6, body))
+    rng = np.random.default_rng(4)
+    decoy_p = pos + rng.normal(0.0, 0.08, pos.shape)
+    decoy_q = (Rotation.from_quat(quat) * Rotation.from_rotvec(rng.normal(0.0, 0.4, (10, 3)))).as_quat()
+    # evidence on the decoys of half the parts: likelihood and potentials disagree, the choice is not trivial
+    on_decoy = (np.arange(10) % 2 == 0)[:, None]
+
+    class Sharp(_FakeLikelihood):  # 3x sharper evidence, so that it can outweigh a potential
+        def log_likelihood(self, part, p, q, views):
+            return 3.0 * super().log_likelihood(part, p, q, views)
+
+    bp = LooseLimbedBP(model, geo, Sharp(np.where(on_decoy, decoy_p, pos), np.where(on_decoy, decoy_q, quat)),
+                       NBPConfig(), seed=0)
+    asm = MapAssembler(bp, MapConfig(refine_rounds=0))
+    beliefs = {(0, p): Particles(np.stack([pos[p], decoy_p[p]]), np.stack([quat[p], decoy_q[p]]), np.log([0.5, 0.5]))
+               for p in range(10)}
+    asm.add(beliefs, 0, [])
+    est_p, est_q, score = asm.estimate([])
+    best = max(itertools.product((0, 1), repeat=10), key=lambda c: _joint_score(
+        bp, np.where(np.array(c)[:, None] == 0, pos, decoy_p), np.where(np.array(c)[:, None] == 0, quat, decoy_q)))
+    pick = np.array(best)[:, None] == 0
+    assert np.allclose(est_p, np.where(pick, pos, decoy_p)) and np.allclose(est_q, np.where(pick, quat, decoy_q))
+    assert score == pytest.approx(_joint_score(bp, est_p, est_q))
+    assert 0 < int(np.sum(pick)) < 10  # both kinds of candidate were chosen somewhere
+
+
+def test_map_refinement_raises_the_score_and_candidates_keep_the_best(model, body, geo):
+    pos, quat = parts_from_theta(body, geo, pose_at("self_occlusion", 5.6, body))
+    bp = LooseLimbedBP(model, geo, _FakeLikelihood(pos, quat), NBPConfig(), seed=1)
+    rng = np.random.default_rng(5)
+    beliefs = {(0, p): Particles.around(pos[p] + [0.04, 0.0, 0.0], quat[p], 30, 0.02, 0.1, rng) for p in range(10)}
+    plain = MapAssembler(bp, MapConfig(refine_rounds=0, candidates=20))
+    refined = MapAssembler(bp, MapConfig(refine_rounds=3, candidates=20))
+    for asm in (plain, refined):
+        asm.add(beliefs, 0, [])
+        assert all(len(c) == 20 for c in asm.score)
+        assert all(np.min(c) >= np.sort(bp.unary(p, beliefs[(0, p)].pos, beliefs[(0, p)].quat, []))[-20] - 1e-9
+                   for p, c in enumerate(asm.score))  # the 20 best by log φ were kept
+    p0, q0, s0 = plain.estimate([])
+    p1, q1, s1 = refined.estimate([])
+    assert s1 > s0 and s1 == pytest.approx(_joint_score(bp, p1, q1))
+    assert np.mean(np.linalg.norm(p1 - pos, axis=1)) < np.mean(np.linalg.norm(p0 - pos, axis=1))
+    again = refined.estimate([])  # a function of the candidates: the same answer on every call
+    assert np.array_equal(again[0], p1) and again[2] == s1
+
+
+def test_tracker_reports_the_map_estimate(model, body, geo):
+    from artrack.loose_limbed import LooseLimbedTracker, TrackerConfig
+
+    pos, quat = parts_from_theta(body, geo, pose_at("self_occlusion", 5.6, body))
+    bp = LooseLimbedBP(model, geo, _MovingLikelihood(pos, quat), NBPConfig(n_particles=40, n_exclusive=20,
+                                                                            n_message=15), seed=2)
+    tracker = LooseLimbedTracker(bp, None, TrackerConfig(track_iterations=2, use_shouters=False))
+    tracker.start_at(pos, quat)
+    joints = tracker.step([1])
+    est_p, est_q = tracker.parts
+    assert np.allclose(joints, joints_from_parts(geo, est_p, est_q))
+    assert np.mean(np.linalg.norm(joints - joints_from_parts(geo, pos + [0.02, 0, 0], quat), axis=1)) < 0.04
+    assert tracker.map_seconds > 0
+
+
 # ------------------------------------------------------------------ images
+def test_face_tells_a_person_facing_the_cameras_from_one_turned_away(geo, scene):
+    """Silhouette and edges score a head turned about its axis the same; the face term (skin in front,
+    hair behind) does not: the mirrored body (left and right swapped) fits the same outline."""
+    head = PART_NAMES.index("head")
+    turned = np.stack([scene.quat[head]] + [(Rotation.from_quat(scene.quat[head])
+                                             * Rotation.from_rotvec([0.0, 0.0, a])).as_quat() for a in (np.pi, 1.5)])
+    where = np.tile(scene.pos[head], (3, 1))
+    with_face = PartLikelihood(geo).log_likelihood(head, where, turned, scene.views)
+    without = PartLikelihood(geo, LikelihoodConfig(w_face=0.0)).log_likelihood(head, where, turned, scene.views)
+    assert np.ptp(without) < 0.3
+    assert with_face[0] > with_face[1] + 3.0 and with_face[0] > with_face[2] + 1.0
+    assert all(v.skin is not None and v.skin.min() >= 0.0 and v.skin.max() <= 1.0 for v in scene.views)
+
+
 def test_likelihood_prefers_the_true_pose(geo, scene):
     """Shifts across a part's axis (10 cm) lower its likelihood; the torso is also held along its axis."""
     lik = PartLikelihood(geo)

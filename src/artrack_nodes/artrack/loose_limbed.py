@@ -33,6 +33,22 @@ Products of two or more mixtures are sampled by Gibbs sampling over the
 mixture labels (Sudderth et al.), in the tangent space of a reference
 rotation (positions exact, rotations by their rotation vectors about the
 reference), vectorised over the chains. Everything is vectorised over particles.
+
+The estimate (:class:`MapAssembler`). The mode of each part's marginal belief
+alone is not a body: an upper arm from one mode and a forearm from another
+need not meet at the elbow, and a mode found in an early iteration can be lost
+in a later one. The body reported is instead the joint MAP over candidate part
+poses: every belief sample of every iteration is a candidate (the best
+``MapConfig.candidates`` per part by their likelihood are kept), and the
+configuration maximising ``Σ_i log φ_i(X_i) + Σ_(i,j) log ψ_ij(X_i, X_j)`` over the
+spatial tree (root: the torso; one potential per undirected edge, parent ->
+child) is found exactly by max-product dynamic programming over the candidates
+(Viterbi on the tree: O(edges × candidates²)), then refined by a few rounds of
+local coordinate ascent (random perturbations of one part at a time, each kept
+if it raises the same objective). Measured on the bench's initialisation scenes
+(bench/loose_limbed.py section 1): the joint objective of the true pose is
+higher than that of every configuration of the belief particles, so the
+marginal modes, not the model, lost the pose.
 """
 
 from __future__ import annotations
@@ -47,7 +63,7 @@ from scipy.special import logsumexp
 
 from .body_parts import PART_NAMES, SPATIAL_EDGES, PartGeometry, joints_from_parts
 from .part_likelihood import PartLikelihood, ViewEvidence
-from .part_potentials import LooseLimbedModel, PoseGMM, rot_residual
+from .part_potentials import LooseLimbedModel, PoseGMM, relative_pose, rot_residual
 
 _LOG2PI = float(np.log(2.0 * np.pi))
 Node = tuple[int, int]  # (frame in the window, part index)
@@ -286,6 +302,21 @@ class LooseLimbedBP:
     def _potential(self, kind: str, src: Node, dst: Node) -> PoseGMM:
         return self.model.potential(kind, PART_NAMES[src[1]], PART_NAMES[dst[1]])
 
+    def unary(self, part: int, pos: np.ndarray, quat: np.ndarray, views: Sequence[ViewEvidence]) -> np.ndarray:
+        """(N,) log φ of part ``part`` at poses pos (N, 3), quat (N, 4): the image likelihood, plus for the
+        torso the upright prior (``NBPConfig.upright_kappa``)."""
+        ll = self.likelihood.log_likelihood(part, pos, quat, views)
+        if part == 0 and self.config.upright_kappa > 0:
+            up = Rotation.from_quat(quat).apply(self.geometry.axis[0])[:, 2]
+            ll = ll + self.config.upright_kappa * (up - 1.0)
+        return ll
+
+    def spatial_log_potential(self, parent: int, child: int, pos_p: np.ndarray, quat_p: np.ndarray,
+                              pos_c: np.ndarray, quat_c: np.ndarray) -> np.ndarray:
+        """(N,) log ψ of the spatial edge parent -> child (part indices) for pose pairs (N, 3), (N, 4) each."""
+        t, q = relative_pose(pos_p, quat_p, pos_c, quat_c)
+        return self.model.potential("spatial", PART_NAMES[parent], PART_NAMES[child]).logpdf(t, q)
+
     def run(self, graph: LooseLimbedGraph, views: Sequence[Sequence[ViewEvidence]], n_iter: int,
             shouts: Sequence[dict[int, KernelMixture]] | None = None,
             fixed: dict[Node, Particles] | None = None,
@@ -359,10 +390,7 @@ class LooseLimbedBP:
         keys = list(pools)
         allp = np.concatenate([pools[k][0] for k in keys])
         allq = np.concatenate([pools[k][1] for k in keys])
-        ll_all = self.likelihood.log_likelihood(node[1], allp, allq, views)
-        if node[1] == 0 and cfg.upright_kappa > 0:  # unary prior on the torso: upright
-            up = Rotation.from_quat(allq).apply(self.geometry.axis[0])[:, 2]
-            ll_all = ll_all + cfg.upright_kappa * (up - 1.0)
+        ll_all = self.unary(node[1], allp, allq, views)
         t2 = time.perf_counter()
         self.timing["likelihood"] += t2 - t1
         # Multiple importance sampling (balance heuristic): the whole pool is one sample of the mixture
@@ -444,6 +472,138 @@ def joints_estimate(geometry: PartGeometry, beliefs: dict[Node, Particles], fram
 
 
 @dataclass
+class MapConfig:
+    """Sizes of the joint MAP estimate (:class:`MapAssembler`)."""
+
+    candidates: int = 100       #: candidate poses kept per part (best by log φ over all iterations)
+    refine_rounds: int = 2      #: rounds of local coordinate ascent after the dynamic programme (0: none)
+    refine_samples: int = 48    #: perturbations tried per part and round
+    refine_sd_pos: float = 0.03  #: m, first round (× 0.6 per round)
+    refine_sd_rot: float = 0.25  #: rad, first round (× 0.6 per round)
+    #: estimate after every BP iteration and keep the (refined) estimate among the candidates, so the
+    #: local refinement continues from it in the next iteration (False: one estimate after the last)
+    every_iteration: bool = True
+
+
+class MapAssembler:
+    """The body as the joint MAP over candidate part poses (module docstring, "The estimate").
+
+    ``add(beliefs, frame, views)`` after every BP iteration adds that frame's belief samples to the
+    candidates (each part keeps the ``candidates`` best by log φ); ``estimate(views)`` returns the part
+    poses (pos (P, 3), quat (P, 4)) maximising ``Σ log φ_i + Σ log ψ_ij`` over the spatial tree — exactly
+    over the candidates by max-product dynamic programming, then refined locally — and that score.
+    ``estimate`` is a function of the candidates alone (its refinement draws from a generator seeded
+    afresh on every call), so it can be called after every iteration (the bench's per-iteration error)
+    without changing the last call, the tracker's answer. Parts without candidates are NaN (and, with
+    their subtrees, left out of the score).
+    """
+
+    def __init__(self, bp: LooseLimbedBP, config: MapConfig | None = None):
+        self.bp = bp
+        self.config = config or MapConfig()
+        self.seed = int(bp.rng.integers(2**32))  # of the refinement
+        n = bp.geometry.n_parts
+        idx = {name: k for k, name in enumerate(PART_NAMES)}
+        self.children: dict[int, list[int]] = {p: [] for p in range(n)}
+        self.parent: dict[int, int] = {}
+        for a, b in SPATIAL_EDGES:
+            self.children[idx[a]].append(idx[b])
+            self.parent[idx[b]] = idx[a]
+        self.pos = [np.zeros((0, 3)) for _ in range(n)]
+        self.quat = [np.zeros((0, 4)) for _ in range(n)]
+        self.score = [np.zeros(0) for _ in range(n)]
+        #: the last estimate (pos (P, 3), quat (P, 4)), or None
+        self.last: tuple[np.ndarray, np.ndarray] | None = None
+
+    def add(self, beliefs: dict[Node, Particles], frame: int, views: Sequence[ViewEvidence]) -> None:
+        """Add the belief samples of window frame ``frame`` as candidates (scored by log φ)."""
+        keep = self.config.candidates
+        for p in range(len(self.pos)):
+            b = beliefs.get((frame, p))
+            if b is None or not len(b):
+                continue
+            pos = np.vstack([self.pos[p], b.pos])
+            quat = np.vstack([self.quat[p], b.quat])
+            score = np.concatenate([self.score[p], self.bp.unary(p, b.pos, b.quat, views)])
+            best = np.argsort(-score, kind="stable")[:keep]
+            self.pos[p], self.quat[p], self.score[p] = pos[best], quat[best], score[best]
+
+    def _subtree(self, p: int, best_child: dict[tuple[int, int], np.ndarray]) -> np.ndarray:
+        """(C_p,) the best score of p's subtree for each candidate of p (max-product upwards)."""
+        total = self.score[p].copy()
+        for c in self.children[p]:
+            if not len(self.score[c]):
+                continue
+            below = self._subtree(c, best_child)
+            n, m = len(total), len(below)
+            pair = self.bp.spatial_log_potential(
+                p, c, np.repeat(self.pos[p], m, axis=0), np.repeat(self.quat[p], m, axis=0),
+                np.tile(self.pos[c], (n, 1)), np.tile(self.quat[c], (n, 1))).reshape(n, m) + below[None, :]
+            best_child[(p, c)] = np.argmax(pair, axis=1)
+            total += pair.max(axis=1)
+        return total
+
+    def _local_score(self, p: int, pos: np.ndarray, quat: np.ndarray, P: np.ndarray, Q: np.ndarray,
+                     views: Sequence[ViewEvidence]) -> np.ndarray:
+        """(N,) the terms of the objective that involve part p, for its poses P (N, 3), Q (N, 4)."""
+        out = self.bp.unary(p, P, Q, views)
+        n = len(P)
+        for c in self.children[p]:
+            if np.all(np.isfinite(pos[c])):
+                out = out + self.bp.spatial_log_potential(p, c, P, Q, np.tile(pos[c], (n, 1)), np.tile(quat[c], (n, 1)))
+        q = self.parent.get(p)
+        if q is not None and np.all(np.isfinite(pos[q])):
+            out = out + self.bp.spatial_log_potential(q, p, np.tile(pos[q], (n, 1)), np.tile(quat[q], (n, 1)), P, Q)
+        return out
+
+    def keep(self, pos: np.ndarray, quat: np.ndarray, views: Sequence[ViewEvidence]) -> None:
+        """Add one configuration (pos (P, 3), quat (P, 4); NaN rows skipped) to the candidates."""
+        for p in np.flatnonzero(np.all(np.isfinite(pos), axis=1)):
+            self.pos[p] = np.vstack([self.pos[p], pos[p][None]])
+            self.quat[p] = np.vstack([self.quat[p], quat[p][None]])
+            self.score[p] = np.append(self.score[p], self.bp.unary(p, pos[p][None], quat[p][None], views))
+
+    def estimate(self, views: Sequence[ViewEvidence]) -> tuple[np.ndarray, np.ndarray, float]:
+        """The joint MAP part poses pos (P, 3), quat (P, 4) (NaN pos: no candidate) and its score."""
+        n = len(self.pos)
+        pos = np.full((n, 3), np.nan)
+        quat = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+        roots = [p for p in range(n) if p not in self.parent or not len(self.score[self.parent[p]])]
+        best_child: dict[tuple[int, int], np.ndarray] = {}
+        total = 0.0
+        for r in roots:
+            if not len(self.score[r]):
+                continue
+            tree = self._subtree(r, best_child)
+            pick = {r: int(np.argmax(tree))}
+            total += float(tree[pick[r]])
+            stack = [r]
+            while stack:
+                p = stack.pop()
+                pos[p], quat[p] = self.pos[p][pick[p]], self.quat[p][pick[p]]
+                for c in self.children[p]:
+                    if (p, c) in best_child:
+                        pick[c] = int(best_child[(p, c)][pick[p]])
+                        stack.append(c)
+        cfg, rng = self.config, np.random.default_rng(self.seed)
+        found = np.flatnonzero(np.all(np.isfinite(pos), axis=1))
+        for k in range(cfg.refine_rounds):
+            sd_p, sd_r = cfg.refine_sd_pos * 0.6**k, cfg.refine_sd_rot * 0.6**k
+            for p in rng.permutation(found):
+                m = cfg.refine_samples
+                P = np.vstack([pos[p], pos[p] + rng.standard_normal((m, 3)) * sd_p])
+                Q = np.vstack([quat[p], (Rotation.from_quat(quat[p])
+                                         * Rotation.from_rotvec(rng.standard_normal((m, 3)) * sd_r)).as_quat()])
+                local = self._local_score(p, pos, quat, P, Q, views)
+                j = int(np.argmax(local))
+                total += float(local[j] - local[0])
+                pos[p], quat[p] = P[j], Q[j]
+        self.last = (pos, quat)
+        self.last_score = total
+        return pos, quat, total
+
+
+@dataclass
 class TrackerConfig:
     """Iterations of the loose-limbed tracker."""
 
@@ -453,18 +613,28 @@ class TrackerConfig:
     #: lost when the mean part log-likelihood of the estimate falls below this (None: never);
     #: the next frame is then found again from no prior pose (recovery)
     lost_score: float | None = None
+    #: the estimate: the joint MAP over the belief samples of all iterations (:class:`MapAssembler`);
+    #: None: each part's marginal mode alone (:func:`estimate_parts`)
+    map: MapConfig | None = field(default_factory=MapConfig)
 
 
 class LooseLimbedTracker:
     """Frame-by-frame loose-limbed tracking (ALGORITHMS.md §4): initialise from shouters alone, then
     a 2-frame window per frame — the previous frame's beliefs (fixed) send temporal messages to the
-    current frame's parts, which iterate with the spatial messages and the shouters."""
+    current frame's parts, which iterate with the spatial messages and the shouters.
+
+    After each step ``parts`` holds the estimate's part poses (pos (P, 3), quat (P, 4); NaN pos where a
+    part was not found), ``score`` its mean part log-likelihood, ``lost`` whether that fell below
+    ``lost_score`` and ``map_seconds`` the time spent on the joint MAP estimate (wall clock).
+    """
 
     def __init__(self, bp: LooseLimbedBP, shouter=None, config: TrackerConfig | None = None):
         self.bp = bp
         self.shouter = shouter
         self.config = config or TrackerConfig()
         self.previous: dict[int, Particles] | None = None
+        self.parts: tuple[np.ndarray, np.ndarray] | None = None
+        self.map_seconds = 0.0
         #: mean part log-likelihood of the last estimate, and whether it was found lost
         self.score = float("nan")
         self.lost = False
@@ -473,14 +643,16 @@ class LooseLimbedTracker:
         return self.shouter.shout(views) if (self.shouter is not None and self.config.use_shouters) else {}
 
     def initialise(self, views: Sequence[ViewEvidence],
-                   callback: Callable[[int, dict[Node, Particles]], None] | None = None) -> np.ndarray:
-        """Find the body from no prior pose (one frame, shouters only); returns the (J, 3) joints."""
-        shouts = self.shouter.shout(views) if self.shouter is not None else {}
-        res = self.bp.run(LooseLimbedGraph(1), [views], self.config.init_iterations, [shouts], callback=callback)
-        self.previous = {p: res.beliefs[(0, p)] for p in range(self.bp.geometry.n_parts)
-                         if (0, p) in res.beliefs}
-        self._check_lost(views, res.beliefs, 0)
-        return joints_estimate(self.bp.geometry, res.beliefs, 0)
+                   callback: Callable[[int, dict[Node, Particles], MapAssembler | None], None] | None = None,
+                   shouts: dict[int, KernelMixture] | None = None) -> np.ndarray:
+        """Find the body from no prior pose (one frame, shouters only); returns the (J, 3) joints.
+
+        callback(iteration, beliefs, assembler) after every BP iteration, the iteration's candidates
+        already added to ``assembler`` (None without ``TrackerConfig.map``); shouts: the shouters'
+        proposals if already computed (default: shout now)."""
+        if shouts is None:
+            shouts = self.shouter.shout(views) if self.shouter is not None else {}
+        return self._infer(LooseLimbedGraph(1), [views], self.config.init_iterations, [shouts], {}, 0, callback)
 
     def start_at(self, pos: np.ndarray, quat: np.ndarray, n: int = 100, sd_pos: float = 0.02,
                  sd_rot: float = 0.05) -> None:
@@ -493,14 +665,40 @@ class LooseLimbedTracker:
         if not self.previous:
             return self.initialise(views)
         fixed = {(0, p): b for p, b in self.previous.items()}
-        res = self.bp.run(LooseLimbedGraph(2), [[], views], self.config.track_iterations,
-                          [{}, self._shouts(views)], fixed=fixed)
-        self.previous = {p: res.beliefs[(1, p)] for p in range(self.bp.geometry.n_parts) if (1, p) in res.beliefs}
-        self._check_lost(views, res.beliefs, 1)
-        return joints_estimate(self.bp.geometry, res.beliefs, 1)
+        return self._infer(LooseLimbedGraph(2), [[], views], self.config.track_iterations,
+                           [{}, self._shouts(views)], fixed, 1, None)
 
-    def _check_lost(self, views: Sequence[ViewEvidence], beliefs: dict[Node, Particles], frame: int) -> None:
-        pos, quat = estimate_parts(beliefs, frame, self.bp.geometry.n_parts)
+    def _infer(self, graph: LooseLimbedGraph, views: list, n_iter: int, shouts: list, fixed: dict, frame: int,
+               callback) -> np.ndarray:
+        """BP on ``graph``; the beliefs of window frame ``frame`` become ``previous``, the estimate ``parts``."""
+        assembler = MapAssembler(self.bp, self.config.map) if self.config.map is not None else None
+        self.map_seconds = 0.0
+
+        def after_iteration(it: int, beliefs: dict[Node, Particles]) -> None:
+            if assembler is not None:
+                t0 = time.perf_counter()
+                assembler.add(beliefs, frame, views[frame])
+                if assembler.config.every_iteration:
+                    assembler.keep(*assembler.estimate(views[frame])[:2], views[frame])
+                self.map_seconds += time.perf_counter() - t0
+            if callback is not None:
+                callback(it, beliefs, assembler)
+
+        res = self.bp.run(graph, views, n_iter, shouts, fixed=fixed, callback=after_iteration)
+        n_parts = self.bp.geometry.n_parts
+        self.previous = {p: res.beliefs[(frame, p)] for p in range(n_parts) if (frame, p) in res.beliefs}
+        if assembler is not None:
+            t0 = time.perf_counter()
+            every = assembler.config.every_iteration and assembler.last is not None
+            pos, quat = assembler.last if every else assembler.estimate(views[frame])[:2]
+            self.map_seconds += time.perf_counter() - t0
+        else:
+            pos, quat = estimate_parts(res.beliefs, frame, n_parts)
+        self.parts = (pos, quat)
+        self._check_lost(views[frame], pos, quat)
+        return joints_from_parts(self.bp.geometry, pos, quat)
+
+    def _check_lost(self, views: Sequence[ViewEvidence], pos: np.ndarray, quat: np.ndarray) -> None:
         ok = np.all(np.isfinite(pos), axis=1)
         self.score = float(np.mean([self.bp.likelihood.log_likelihood(p, pos[p:p + 1], quat[p:p + 1], views)[0]
                                     for p in np.flatnonzero(ok)])) if ok.any() else -np.inf

@@ -23,7 +23,7 @@ from .body_model import BodyModel
 from .body_parts import part_geometry
 from .cameras import Camera
 from .errors import InputError
-from .loose_limbed import LooseLimbedBP, LooseLimbedTracker, NBPConfig, TrackerConfig, estimate_parts
+from .loose_limbed import LooseLimbedBP, LooseLimbedTracker, NBPConfig, TrackerConfig
 from .part_likelihood import LikelihoodConfig, PartLikelihood, view_evidence
 from .part_potentials import LooseLimbedModel
 from .shouters import Shouter, ShouterConfig
@@ -105,8 +105,7 @@ class LooseLimbedStage:
         joints = self.tracker.step(views)
         if self.tracker.lost:  # too unlikely a body (StageConfig.min_score): nobody found
             return None
-        beliefs = {(0, p): b for p, b in (self.tracker.previous or {}).items()}
-        pos, quat = estimate_parts(beliefs, 0, self.geometry.n_parts)
+        pos, quat = self.tracker.parts
         links = [LinkEstimate(name=name, position=pos[p], rotation=Rotation.from_quat(quat[p]).as_matrix())
                  for p, name in enumerate(self.geometry.names) if np.all(np.isfinite(pos[p]))]
         if not links:
