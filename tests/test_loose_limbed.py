@@ -462,9 +462,10 @@ def test_stage_seeds_the_background_then_finds_the_body(body, model):
         stage.step(6, {"cam01": frame["cam01"]})
 
 
-def test_initialiser_policy_infers_at_start_and_while_the_skeleton_is_lost():
-    """InitialiserPolicy (the loose_limbed node's mode=initialiser): infers until its first estimate,
-    then only after the skeleton's last body was LOST, re-initialising on the first such frame."""
+def test_initialiser_policy_infers_until_the_skeleton_tracks_and_while_it_is_lost():
+    """InitialiserPolicy (the loose_limbed node's mode=initialiser): infers while the skeleton has not
+    started (finding the body, then tracking it: a TRACKING body is what starts the skeleton) and after
+    its last body was LOST, re-initialising on the first such frame; not while the skeleton tracks."""
     from artrack.loose_limbed_stage import InitialiserPolicy
     from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING
 
@@ -485,10 +486,12 @@ def test_initialiser_policy_infers_at_start_and_while_the_skeleton_is_lost():
     assert policy.infer() and policy.step(stage, 1, {}) is None  # nothing found yet: still initialising
     policy.skeleton(STATUS_INITIALIZING)
     assert policy.step(stage, 2, {}) == 2 and stage.calls == ["reinit", 1, "reinit", 2]
-    assert not policy.skeleton(STATUS_TRACKING) and not policy.infer() and policy.step(stage, 3, {}) is None
+    assert not policy.skeleton(STATUS_INITIALIZING)  # the skeleton has not started: track on (no re-init)
+    assert policy.infer() and policy.step(stage, 3, {}) == 3 and stage.calls[-2:] == [2, 3]
+    assert not policy.skeleton(STATUS_TRACKING) and not policy.infer() and policy.step(stage, 4, {}) is None
     assert policy.skeleton(STATUS_LOST)  # newly lost: say so once
-    assert policy.infer() and policy.step(stage, 4, {}) == 4 and stage.calls[-2:] == ["reinit", 4]
-    assert not policy.skeleton(STATUS_LOST) and policy.step(stage, 5, {}) == 5 and stage.calls[-1] == 5  # tracks on
+    assert policy.infer() and policy.step(stage, 5, {}) == 5 and stage.calls[-2:] == ["reinit", 5]
+    assert not policy.skeleton(STATUS_LOST) and policy.step(stage, 6, {}) == 6 and stage.calls[-1] == 6  # tracks on
     policy.skeleton(STATUS_TRACKING)
     assert not policy.infer()
     assert InitialiserPolicy(estimator=True).infer()

@@ -117,24 +117,24 @@ class LooseLimbedStage:
 
 class InitialiserPolicy:
     """When the loose_limbed node infers (ALGORITHMS.md §4 "automatic initialisation, recovery from
-    loss"): in mode estimator on every frame; as an initialiser at start (until its first estimate)
-    and on every frame after the skeleton's last body had status LOST — the first after the skeleton
-    became LOST found again from no prior pose (status INITIALIZING), the following ones tracked
-    (TRACKING: what the skeleton takes as a re-seed). Shared by the node and bench/loose_limbed.py's
+    loss"): in mode estimator on every frame; as an initialiser on every frame after the skeleton's
+    last body was not TRACKING — not yet started (INITIALIZING) or LOST. The first such frame is found
+    from no prior pose (status INITIALIZING), and again the first after the skeleton became LOST; the
+    following ones are tracked (TRACKING: what the skeleton takes as a re-seed, which starts a skeleton
+    that has not started and restarts a lost one). Shared by the node and bench/loose_limbed.py's
     closed-loop recovery."""
 
     def __init__(self, estimator: bool = False):
         self.estimator = bool(estimator)
         self.needs_init = True
-        self.skeleton_ok = False  # the skeleton's last body was not LOST
+        self.skeleton_ok = False  # the skeleton's last body was TRACKING
 
     def skeleton(self, status: int) -> bool:
         """Note the status of the skeleton's latest body; True when it has just become LOST (then the
-        next frame is found again from no prior pose; while it stays LOST the body found is tracked on,
-        so that a TRACKING body can re-seed it)."""
-        lost = int(status) == STATUS_LOST
-        newly = lost and self.skeleton_ok
-        self.skeleton_ok = not lost
+        next frame is found again from no prior pose; while it stays LOST, or has not started, the body
+        found is tracked on, so that a TRACKING body can seed it)."""
+        newly = int(status) == STATUS_LOST and self.skeleton_ok
+        self.skeleton_ok = int(status) == STATUS_TRACKING
         self.needs_init = self.needs_init or newly
         return newly
 

@@ -10,14 +10,14 @@ With ``lockstep`` (graph: lockstep replay) it answers every complete frame: the 
 with status LOST and NaN joints when it did not infer or found nobody, so that a skeleton waiting
 for its re-seed (skeleton ``reseed_topic`` in lockstep) never waits in vain.
 
-mode=initialiser: infers only at start (until its first body) and whenever the skeleton's last
-body has status LOST (artrack.loose_limbed_stage.InitialiserPolicy): the first frame after the
-skeleton became LOST is found from no prior pose (INITIALIZING), the following ones are tracked
-(TRACKING, what the skeleton re-seeds from); a body scoring below ``min_score`` is not published
+mode=initialiser: infers while the skeleton's last body is not TRACKING — it has not started, or
+it is LOST (artrack.loose_limbed_stage.InitialiserPolicy): the first such frame (and the first
+after the skeleton became LOST) is found from no prior pose (INITIALIZING), the following ones are
+tracked (TRACKING, what the skeleton starts or re-seeds from); a body scoring below ``min_score`` is not published
 and the next frame starts afresh. mode=estimator: tracks every frame, an estimator of its own.
 The skeleton reads /artrack/loose_limbed/body when its ``reseed_topic`` names it (graph:
-``--set loose_limbed=true --set reseed_topic=/artrack/loose_limbed/body``) and re-initialises
-from it when lost.
+``--set loose_limbed=true --set reseed_topic=/artrack/loose_limbed/body``) and starts from it when
+it has not started, or restarts from it when lost.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ OUTPUT_TOPIC = "/artrack/loose_limbed/body"
 
 PARAMS = [
     ("camera_names", ["cam01", "cam02", "cam03", "cam04"], "cameras whose images are used"),
-    ("mode", "initialiser", "initialiser (at start and when the skeleton is LOST) | estimator (every frame)"),
+    ("mode", "initialiser", "initialiser (until the skeleton tracks, and while it is LOST) | estimator (every frame)"),
     ("reliable_images", False, "reliable image QoS (lockstep bag replay) instead of sensor data"),
     ("lockstep", False, "answer every frame (LOST with NaN joints when there is no estimate): a lockstep "
                         "skeleton with reseed_topic waits for it"),
