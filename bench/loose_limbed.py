@@ -12,9 +12,12 @@ back, then the left hand waves) — poses and motion that are not in the
 training set — rendered with seeds 0.. (room, clothes, noise), 4 ring cameras.
 
 1. Automatic initialisation: each test scene's frame (seed k starts at 5.0 + 0.4 k s) from
-   no prior pose — shouters + BP on one frame; MPJPE (15 joints, mm) per BP
-   iteration, mean ± sd over the scenes (table + PNG plot). Joints of parts
-   with no belief yet (iteration 0: parts without a shouter) are skipped.
+   no prior pose — shouters + BP on one frame, ``--init-repeats`` times with different random
+   streams; MPJPE (15 joints, mm) per BP iteration of the tracker's estimate (the joint MAP over
+   the belief samples so far, ``loose_limbed.MapAssembler``) and, for comparison, of each part's
+   marginal mode alone, mean ± sd over the runs (table + PNG plot), the median and how often the
+   mirrored body (left <-> right) would be nearer the truth. Joints of parts with no belief yet
+   (iteration 0: parts without a shouter) are skipped in the marginal-mode curve.
 2. Tracking on a low-contrast version of the scene (person blended towards the
    background by ``--contrast``, extra pixel noise): the loose-limbed tracker with
    shouters, without shouters, and the annealed kinematic-tree particle filter
@@ -39,6 +42,7 @@ training set — rendered with seeds 0.. (room, clothes, noise), 4 ring cameras.
 Ends with one JSON line of the headline figures. Run from the repository root::
 
     .venv/bin/python bench/loose_limbed.py            # the acceptance run (10 seeds × 50 frames; long)
+    .venv/bin/python bench/loose_limbed.py --init-scenes 10 --init-repeats 3 --seeds 0 --recovery-seeds 0 --loop-seeds 0
     .venv/bin/python bench/loose_limbed.py --quick    # smoke run (2 scenes, 2 seeds × 8 frames)
     .venv/bin/python bench/loose_limbed.py --retrain  # re-learn config/loose_limbed_model.yaml and exit
 """
