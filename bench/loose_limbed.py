@@ -219,7 +219,7 @@ LOOP_REGAIN = 10            #: the acceptance: tracking regained within this man
 
 
 def _loop_run(body, model, cfg: SceneConfig, with_ll: bool, relocalise: bool, iterations: int, particles: int,
-              seed: int, min_score: float):
+              seed: int, min_score: float, start: bool = False):
     """One closed-loop run of a blackout scene, ordered as the lockstep graph: the loose_limbed node infers
     on frame t if the skeleton's body of t-1 was LOST (InitialiserPolicy); its TRACKING body of t re-seeds
     the skeleton before the skeleton estimates t. Returns (status (N,), MPJPE mm (N,; inf while nothing is
@@ -232,7 +232,7 @@ def _loop_run(body, model, cfg: SceneConfig, with_ll: bool, relocalise: bool, it
     pipe.skeleton.estimator.cfg.tracking.relocalise_from_blobs = relocalise
     stage = LooseLimbedStage(body, pipe.cameras, model, StageConfig(init_iterations=iterations, n_particles=particles,
                                                                    seed=seed, min_score=min_score)) if with_ll else None
-    policy = InitialiserPolicy()
+    policy = InitialiserPolicy(start=start)
     status, err, reseeds, t_ll = [], [], [], 0.0
     for fr in generate_scene(cfg, body, cams):
         if stage is not None:
@@ -264,7 +264,7 @@ def loop_recovery(args, model, body, results: dict) -> None:
             for name, with_ll, relocalise in variants:
                 t0 = time.perf_counter()
                 st, err, reseeds, t_ll = _loop_run(body, model, cfg, with_ll, relocalise, args.iterations,
-                                                   args.loop_particles, s, args.loop_min_score)
+                                                   args.loop_particles, s, args.loop_min_score, args.loop_ll_start)
                 pre = float(np.mean(err[first - 15:first]))
                 bound = max(2.0 * pre, 200.0)
                 ok = [i - last for i in range(last, len(st)) if st[i] == STATUS_TRACKING and err[i] < bound]
@@ -281,7 +281,8 @@ def loop_recovery(args, model, body, results: dict) -> None:
     print(f"\n5. Closed-loop recovery: every camera sees the empty room {LOOP_BLACKOUT[0]}-{sum(LOOP_BLACKOUT)} s "
           f"(frames {first}-{last - 1}), {LOOP_SIZE[0]}x{LOOP_SIZE[1]}, baseline skeleton; loose_limbed "
           f"{args.iterations} iterations x {args.loop_particles} particles, min_score {args.loop_min_score:g}")
-    print("(LL only: the skeleton's own re-initialisation from blobs off, tracking.relocalise_from_blobs false)")
+    print("(LL only: the skeleton's own re-initialisation from blobs off, tracking.relocalise_from_blobs false)"
+          + ("; the loose-limbed body also starts the skeleton (--loop-ll-start)" if args.loop_ll_start else ""))
     print("background  seed  variant                pre mm  bound mm  LOST at  frames to regain  after mm (10 fr)"
           "  last 10 fr mm  re-seeded at  LL s")
     for r in rows:
@@ -323,6 +324,8 @@ def main() -> int:
     ap.add_argument("--loop-seeds", type=int, default=1, help="scene seeds of the closed-loop recovery (section 5; "
                     "0: skip)")
     ap.add_argument("--loop-particles", type=int, default=100, help="loose_limbed node particles in section 5")
+    ap.add_argument("--loop-ll-start", action="store_true",
+                    help="section 5: the loose-limbed body also starts the skeleton (node start_skeleton)")
     ap.add_argument("--loop-min-score", type=float, default=-17.0,
                     help="loose_limbed node min_score in section 5 (the node's default; -1000: no gate)")
     ap.add_argument("--out", type=Path, default=Path("out/loose_limbed"))

@@ -7,8 +7,9 @@ the graph in lockstep with the loose_limbed initialiser and the skeleton's ``res
 with the skeleton's own re-initialisation from its blobs switched off
 (``tracking.relocalise_from_blobs: false``), so that only the loose-limbed body can bring it back
 (with it on, the skeleton finds this person again by itself on the first frame after the blackout:
-bench/loose_limbed.py section 5). The loose-limbed body must start the skeleton (the person walks
-in at 1.5 s, before the skeleton's own start-up from its blobs). The skeleton must declare itself
+bench/loose_limbed.py section 5). With ``loose_limbed_start`` the loose-limbed body must also start
+the skeleton (the person walks in at 1.5 s, before the skeleton's own start-up from its blobs; off
+by default, where the skeleton starts from its blobs). The skeleton must declare itself
 LOST during the blackout (no blobs for ``tracking.lost_after_frames`` frames), the loose_limbed
 node must hear it, the skeleton must be re-seeded from its body, and within 10 frames of the
 blackout's end the skeleton's bodies must be TRACKING again with their MPJPE under
@@ -51,6 +52,7 @@ def test_loose_limbed_graph_regains_tracking_after_a_blackout(tmp_path, env, bla
     skeleton_config = tmp_path / "skeleton.yaml"
     skeleton_config.write_text("tracking:\n  relocalise_from_blobs: false\n")
     rec = _launch(tmp_path, blackout_scene, env, "loose_limbed=true", "reseed_topic=/artrack/loose_limbed/body",
+                  "loose_limbed_start=true",
                   f"skeleton_config={skeleton_config}", "loose_limbed_iterations=4", "loose_limbed_particles=40",
                   "rep155=false", timeout_s=300)
     logs = tmp_path / "logs"

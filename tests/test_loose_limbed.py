@@ -462,27 +462,52 @@ def test_stage_seeds_the_background_then_finds_the_body(body, model):
         stage.step(6, {"cam01": frame["cam01"]})
 
 
-def test_initialiser_policy_infers_until_the_skeleton_tracks_and_while_it_is_lost():
-    """InitialiserPolicy (the loose_limbed node's mode=initialiser): infers while the skeleton has not
-    started (finding the body, then tracking it: a TRACKING body is what starts the skeleton) and after
-    its last body was LOST, re-initialising on the first such frame; not while the skeleton tracks."""
+class _PolicyStage:
+    """Records what an InitialiserPolicy asks of the stage; finds nothing on frame 1."""
+
+    ready = True
+
+    def __init__(self):
+        self.calls = []
+
+    def reinitialise(self):
+        self.calls.append("reinit")
+
+    def step(self, stamp, images):
+        self.calls.append(stamp)
+        return None if stamp == 1 else stamp
+
+    def step_background(self, images):
+        self.calls.append("bg")
+
+
+def test_initialiser_policy_infers_at_start_and_while_the_skeleton_is_lost():
+    """InitialiserPolicy (the loose_limbed node's mode=initialiser): infers until its first estimate,
+    then only after the skeleton's last body was LOST, re-initialising on the first such frame."""
     from artrack.loose_limbed_stage import InitialiserPolicy
     from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING
 
-    class Stage:  # records what the policy asks of the stage
-        ready, calls = True, []
+    stage, policy = _PolicyStage(), InitialiserPolicy()
+    assert policy.infer() and policy.step(stage, 1, {}) is None  # nothing found yet: still initialising
+    policy.skeleton(STATUS_INITIALIZING)
+    assert policy.step(stage, 2, {}) == 2 and stage.calls == ["reinit", 1, "reinit", 2]
+    assert not policy.skeleton(STATUS_INITIALIZING) and not policy.infer()  # the skeleton starts by itself
+    assert not policy.skeleton(STATUS_TRACKING) and not policy.infer() and policy.step(stage, 3, {}) is None
+    assert policy.skeleton(STATUS_LOST)  # newly lost: say so once
+    assert policy.infer() and policy.step(stage, 4, {}) == 4 and stage.calls[-2:] == ["reinit", 4]
+    assert not policy.skeleton(STATUS_LOST) and policy.step(stage, 5, {}) == 5 and stage.calls[-1] == 5  # tracks on
+    policy.skeleton(STATUS_TRACKING)
+    assert not policy.infer()
+    assert InitialiserPolicy(estimator=True).infer()
 
-        def reinitialise(self):
-            self.calls.append("reinit")
 
-        def step(self, stamp, images):
-            self.calls.append(stamp)
-            return None if stamp == 1 else stamp
+def test_initialiser_policy_with_start_infers_until_the_skeleton_tracks():
+    """With ``start``: also while the skeleton has not started (finding the body, then tracking it: a
+    TRACKING body is what starts the skeleton); as without it once the skeleton tracks."""
+    from artrack.loose_limbed_stage import InitialiserPolicy
+    from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING
 
-        def step_background(self, images):
-            self.calls.append("bg")
-
-    stage, policy = Stage(), InitialiserPolicy()
+    stage, policy = _PolicyStage(), InitialiserPolicy(start=True)
     assert policy.infer() and policy.step(stage, 1, {}) is None  # nothing found yet: still initialising
     policy.skeleton(STATUS_INITIALIZING)
     assert policy.step(stage, 2, {}) == 2 and stage.calls == ["reinit", 1, "reinit", 2]

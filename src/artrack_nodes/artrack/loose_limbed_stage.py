@@ -117,24 +117,27 @@ class LooseLimbedStage:
 
 class InitialiserPolicy:
     """When the loose_limbed node infers (ALGORITHMS.md §4 "automatic initialisation, recovery from
-    loss"): in mode estimator on every frame; as an initialiser on every frame after the skeleton's
-    last body was not TRACKING — not yet started (INITIALIZING) or LOST. The first such frame is found
-    from no prior pose (status INITIALIZING), and again the first after the skeleton became LOST; the
-    following ones are tracked (TRACKING: what the skeleton takes as a re-seed, which starts a skeleton
-    that has not started and restarts a lost one). Shared by the node and bench/loose_limbed.py's
-    closed-loop recovery."""
+    loss"): in mode estimator on every frame; as an initialiser at start until its first body and on
+    every frame after the skeleton's last body was LOST — the first frame after the skeleton became
+    LOST found again from no prior pose (status INITIALIZING), the following ones tracked (TRACKING:
+    what the skeleton takes as a re-seed). With ``start`` also on every frame while the skeleton has
+    not started (its last body INITIALIZING), so that a TRACKING body starts it: by default the
+    skeleton starts from its own blobs, which measured better (README, bench/loose_limbed.py section 5
+    with --loop-ll-start). Shared by the node and bench/loose_limbed.py's closed-loop recovery."""
 
-    def __init__(self, estimator: bool = False):
+    def __init__(self, estimator: bool = False, start: bool = False):
         self.estimator = bool(estimator)
+        self.start = bool(start)
         self.needs_init = True
-        self.skeleton_ok = False  # the skeleton's last body was TRACKING
+        self.skeleton_ok = False  # the skeleton's last body was not LOST (with start: was TRACKING)
 
     def skeleton(self, status: int) -> bool:
         """Note the status of the skeleton's latest body; True when it has just become LOST (then the
-        next frame is found again from no prior pose; while it stays LOST, or has not started, the body
-        found is tracked on, so that a TRACKING body can seed it)."""
-        newly = int(status) == STATUS_LOST and self.skeleton_ok
-        self.skeleton_ok = int(status) == STATUS_TRACKING
+        next frame is found again from no prior pose; while it stays LOST, or with ``start`` has not
+        started, the body found is tracked on, so that a TRACKING body can seed it)."""
+        status = int(status)
+        newly = status == STATUS_LOST and self.skeleton_ok
+        self.skeleton_ok = status == STATUS_TRACKING if self.start else status != STATUS_LOST
         self.needs_init = self.needs_init or newly
         return newly
 

@@ -10,10 +10,11 @@ With ``lockstep`` (graph: lockstep replay) it answers every complete frame: the 
 with status LOST and NaN joints when it did not infer or found nobody, so that a skeleton waiting
 for its re-seed (skeleton ``reseed_topic`` in lockstep) never waits in vain.
 
-mode=initialiser: infers while the skeleton's last body is not TRACKING — it has not started, or
-it is LOST (artrack.loose_limbed_stage.InitialiserPolicy): the first such frame (and the first
-after the skeleton became LOST) is found from no prior pose (INITIALIZING), the following ones are
-tracked (TRACKING, what the skeleton starts or re-seeds from); a body scoring below ``min_score`` is not published
+mode=initialiser: infers at start until its first body and whenever the skeleton's last body has
+status LOST (artrack.loose_limbed_stage.InitialiserPolicy): the first frame after the skeleton
+became LOST is found from no prior pose (INITIALIZING), the following ones are tracked (TRACKING,
+what the skeleton re-seeds from); with ``start_skeleton`` also while the skeleton has not started,
+so that its first TRACKING body starts the skeleton; a body scoring below ``min_score`` is not published
 and the next frame starts afresh. mode=estimator: tracks every frame, an estimator of its own.
 The skeleton reads /artrack/loose_limbed/body when its ``reseed_topic`` names it (graph:
 ``--set loose_limbed=true --set reseed_topic=/artrack/loose_limbed/body``) and starts from it when
@@ -49,7 +50,9 @@ OUTPUT_TOPIC = "/artrack/loose_limbed/body"
 
 PARAMS = [
     ("camera_names", ["cam01", "cam02", "cam03", "cam04"], "cameras whose images are used"),
-    ("mode", "initialiser", "initialiser (until the skeleton tracks, and while it is LOST) | estimator (every frame)"),
+    ("mode", "initialiser", "initialiser (at start and when the skeleton is LOST) | estimator (every frame)"),
+    ("start_skeleton", False, "mode=initialiser: also infer while the skeleton has not started, so that this "
+     "node's body starts it (default: the skeleton starts from its own blobs, which measured better)"),
     ("reliable_images", False, "reliable image QoS (lockstep bag replay) instead of sensor data"),
     ("lockstep", False, "answer every frame (LOST with NaN joints when there is no estimate): a lockstep "
                         "skeleton with reseed_topic waits for it"),
@@ -79,7 +82,7 @@ class LooseLimbedNode(Node):
         self.names = list(p["camera_names"])
         if p["mode"] not in ("initialiser", "estimator"):
             raise InputError(f"loose_limbed: parameter 'mode' must be initialiser or estimator, got {p['mode']!r}")
-        self.policy = InitialiserPolicy(estimator=p["mode"] == "estimator")
+        self.policy = InitialiserPolicy(estimator=p["mode"] == "estimator", start=p["start_skeleton"])
         self.body = load_body_model(p["body_model"] or None)
         self.model = load_model(p["model"] or None)
         self.stage: LooseLimbedStage | None = None
