@@ -326,7 +326,7 @@ def main() -> int:
     ap.add_argument("--loop-particles", type=int, default=100, help="loose_limbed node particles in section 5")
     ap.add_argument("--loop-ll-start", action="store_true",
                     help="section 5: the loose-limbed body also starts the skeleton (node start_skeleton)")
-    ap.add_argument("--loop-min-score", type=float, default=-17.0,
+    ap.add_argument("--loop-min-score", type=float, default=-14.5,
                     help="loose_limbed node min_score in section 5 (the node's default; -1000: no gate)")
     ap.add_argument("--out", type=Path, default=Path("out/loose_limbed"))
     args = ap.parse_args()

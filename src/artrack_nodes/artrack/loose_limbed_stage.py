@@ -43,8 +43,10 @@ class StageConfig:
     background_seed_stride: int = 4    #: one seed frame every this many frames
     #: no body when the estimate's mean part log-likelihood (LooseLimbedTracker.score) is below this (the
     #: tracker's lost_score: the next frame is found again from no prior pose); None: always a body.
-    #: Measured (bench/loose_limbed.py section 5 scene, seed 3, 320x240): the person ≈ −12…−14, a
-    #: "body" found in an empty room whose background model holds ghosts of the person ≈ −19…−20
+    #: Measured with the joint MAP estimate (the node's default is −14.5): the person −9.8…−14.0 (the
+    #: bench's 6 initialisation scenes at 640x480 and 320x240, and section 5's scenes seeds 3–5 at
+    #: 320x240, clean and ghost backgrounds), a "body" found in an empty room whose background model
+    #: holds ghosts of the person −14.3…−17.5 (section 5's ghost scenes during the blackout)
     min_score: float | None = None
 
 

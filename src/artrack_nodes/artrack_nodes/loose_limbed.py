@@ -60,8 +60,8 @@ PARAMS = [
     ("track_iterations", 2, "BP iterations per tracked frame (mode=estimator)"),
     ("particles", 100, "belief samples per part and iteration"),
     ("seed", 0, "random seed of the inference"),
-    ("min_score", -17.0, "no body when its mean part log-likelihood is below this (a person scores about -12 to "
-                         "-14, a body found in background ghosts about -19 to -20); the next frame starts afresh"),
+    ("min_score", -14.5, "no body when its mean part log-likelihood is below this (a person scores about -10 to "
+                         "-14, a body found in background ghosts about -14.3 to -17.5); the next frame starts afresh"),
     ("background_frames", 11, "frames in each camera's background median (seeded before any inference)"),
     ("background_stride", 4, "one background seed frame every this many frames"),
     ("model", "", "potentials YAML (empty: config/loose_limbed_model.yaml)"),
