@@ -272,7 +272,7 @@ def test_three_frame_window_finds_every_node_through_time(model, body, geo):
         assert np.mean(np.linalg.norm(est - (pos + [0.02 * f, 0, 0]), axis=1)) < 0.06
 
 
-def test_tracker_follows_a_moving_body(model, body, geo):
+def test_tracker_follows_a_moving_body_and_reports_the_map_estimate(model, body, geo):
     from artrack.loose_limbed import LooseLimbedTracker, TrackerConfig
 
     pos, quat = parts_from_theta(body, geo, pose_at("self_occlusion", 5.6, body))
@@ -282,6 +282,8 @@ def test_tracker_follows_a_moving_body(model, body, geo):
     tracker.start_at(pos, quat)
     for k in range(1, 6):
         joints = tracker.step([k])
+    est_p, est_q = tracker.parts  # the estimate reported is the joint MAP (TrackerConfig.map)
+    assert np.allclose(joints, joints_from_parts(geo, est_p, est_q)) and tracker.map_seconds > 0
     truth = joints_from_parts(geo, pos + [0.1, 0, 0], quat)
     assert np.mean(np.linalg.norm(joints - truth, axis=1)) < 0.05
 
@@ -345,21 +347,6 @@ def test_map_refinement_raises_the_score_and_candidates_keep_the_best(model, bod
     assert np.mean(np.linalg.norm(p1 - pos, axis=1)) < np.mean(np.linalg.norm(p0 - pos, axis=1))
     again = refined.estimate([])  # a function of the candidates: the same answer on every call
     assert np.array_equal(again[0], p1) and again[2] == s1
-
-
-def test_tracker_reports_the_map_estimate(model, body, geo):
-    from artrack.loose_limbed import LooseLimbedTracker, TrackerConfig
-
-    pos, quat = parts_from_theta(body, geo, pose_at("self_occlusion", 5.6, body))
-    bp = LooseLimbedBP(model, geo, _MovingLikelihood(pos, quat), NBPConfig(n_particles=40, n_exclusive=20,
-                                                                            n_message=15), seed=2)
-    tracker = LooseLimbedTracker(bp, None, TrackerConfig(track_iterations=2, use_shouters=False))
-    tracker.start_at(pos, quat)
-    joints = tracker.step([1])
-    est_p, est_q = tracker.parts
-    assert np.allclose(joints, joints_from_parts(geo, est_p, est_q))
-    assert np.mean(np.linalg.norm(joints - joints_from_parts(geo, pos + [0.02, 0, 0], quat), axis=1)) < 0.04
-    assert tracker.map_seconds > 0
 
 
 # ------------------------------------------------------------------ images
