@@ -468,38 +468,24 @@ class _PolicyStage:
         self.calls.append("bg")
 
 
-def test_initialiser_policy_infers_at_start_and_while_the_skeleton_is_lost():
+@pytest.mark.parametrize("start", [False, True])
+def test_initialiser_policy_infers_at_start_and_while_the_skeleton_is_lost(start):
     """InitialiserPolicy (the loose_limbed node's mode=initialiser): infers until its first estimate,
-    then only after the skeleton's last body was LOST, re-initialising on the first such frame."""
+    then only after the skeleton's last body was LOST, re-initialising on the first such frame; with
+    ``start`` also while the skeleton has not started (tracking the body found: a TRACKING body is what
+    starts the skeleton)."""
     from artrack.loose_limbed_stage import InitialiserPolicy
     from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING
 
-    stage, policy = _PolicyStage(), InitialiserPolicy()
+    stage, policy = _PolicyStage(), InitialiserPolicy(start=start)
     assert policy.infer() and policy.step(stage, 1, {}) is None  # nothing found yet: still initialising
     policy.skeleton(STATUS_INITIALIZING)
     assert policy.step(stage, 2, {}) == 2 and stage.calls == ["reinit", 1, "reinit", 2]
-    assert not policy.skeleton(STATUS_INITIALIZING) and not policy.infer()  # the skeleton starts by itself
-    assert not policy.skeleton(STATUS_TRACKING) and not policy.infer() and policy.step(stage, 3, {}) is None
-    assert policy.skeleton(STATUS_LOST)  # newly lost: say so once
-    assert policy.infer() and policy.step(stage, 4, {}) == 4 and stage.calls[-2:] == ["reinit", 4]
-    assert not policy.skeleton(STATUS_LOST) and policy.step(stage, 5, {}) == 5 and stage.calls[-1] == 5  # tracks on
-    policy.skeleton(STATUS_TRACKING)
-    assert not policy.infer()
-    assert InitialiserPolicy(estimator=True).infer()
-
-
-def test_initialiser_policy_with_start_infers_until_the_skeleton_tracks():
-    """With ``start``: also while the skeleton has not started (finding the body, then tracking it: a
-    TRACKING body is what starts the skeleton); as without it once the skeleton tracks."""
-    from artrack.loose_limbed_stage import InitialiserPolicy
-    from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING
-
-    stage, policy = _PolicyStage(), InitialiserPolicy(start=True)
-    assert policy.infer() and policy.step(stage, 1, {}) is None  # nothing found yet: still initialising
-    policy.skeleton(STATUS_INITIALIZING)
-    assert policy.step(stage, 2, {}) == 2 and stage.calls == ["reinit", 1, "reinit", 2]
-    assert not policy.skeleton(STATUS_INITIALIZING)  # the skeleton has not started: track on (no re-init)
-    assert policy.infer() and policy.step(stage, 3, {}) == 3 and stage.calls[-2:] == [2, 3]
+    assert not policy.skeleton(STATUS_INITIALIZING)
+    if start:  # the skeleton has not started: track on, no re-initialisation
+        assert policy.infer() and policy.step(stage, 3, {}) == 3 and stage.calls[-2:] == [2, 3]
+    else:  # the skeleton starts from its own blobs
+        assert not policy.infer() and policy.step(stage, 3, {}) is None and stage.calls[-1] == 2
     assert not policy.skeleton(STATUS_TRACKING) and not policy.infer() and policy.step(stage, 4, {}) is None
     assert policy.skeleton(STATUS_LOST)  # newly lost: say so once
     assert policy.infer() and policy.step(stage, 5, {}) == 5 and stage.calls[-2:] == ["reinit", 5]
