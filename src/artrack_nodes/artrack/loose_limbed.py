@@ -45,10 +45,10 @@ spatial tree (root: the torso; one potential per undirected edge, parent ->
 child) is found exactly by max-product dynamic programming over the candidates
 (Viterbi on the tree: O(edges × candidates²)), then refined by a few rounds of
 local coordinate ascent (random perturbations of one part at a time, each kept
-if it raises the same objective). Measured on the bench's initialisation scenes
-(bench/loose_limbed.py section 1): the joint objective of the true pose is
-higher than that of every configuration of the belief particles, so the
-marginal modes, not the model, lost the pose.
+if it raises the same objective). Measured on the bench's first 5 initialisation
+scenes (bench/loose_limbed.py section 1): the true pose scored higher than every
+combination of the final belief particles, so the marginal modes had lost poses
+that the model preferred.
 """
 
 from __future__ import annotations
@@ -599,7 +599,6 @@ class MapAssembler:
                 total += float(local[j] - local[0])
                 pos[p], quat[p] = P[j], Q[j]
         self.last = (pos, quat)
-        self.last_score = total
         return pos, quat, total
 
 
