@@ -83,7 +83,8 @@ class ViewEvidence:
 
 def view_evidence(camera: Camera, image_bgr: np.ndarray, background_bgr: np.ndarray,
                   config: LikelihoodConfig | None = None) -> ViewEvidence:
-    """Foreground and edge maps of one image given the (empty-room) background image, both (H, W, 3) uint8."""
+    """Foreground, edge and (with a face term) skin maps of one image given the (empty-room) background
+    image, both (H, W, 3) uint8."""
     cfg = config or LikelihoodConfig()
     diff = cv2.absdiff(image_bgr, background_bgr).max(axis=2).astype(np.float32)
     fg = np.clip((diff - cfg.fg_low) / (cfg.fg_high - cfg.fg_low), 0.0, 1.0)
@@ -105,9 +106,8 @@ def view_evidence(camera: Camera, image_bgr: np.ndarray, background_bgr: np.ndar
 def skin_map(image_bgr: np.ndarray, blur_sigma_px: float = 0.0) -> np.ndarray:
     """(H, W) float32 in [0, 1]: exp(−½ d²) of every pixel's colour distance d to the default skin model
     (``blobs.skin_model``; 0 where darker than its minimum intensity), optionally blurred."""
-    model = skin_model(BlobTrackerConfig())
     cfg = BlobTrackerConfig()
-    d2 = model.distance2(colour_features(image_bgr).reshape(-1, 3), cfg).reshape(image_bgr.shape[:2])
+    d2 = skin_model(cfg).distance2(colour_features(image_bgr).reshape(-1, 3), cfg).reshape(image_bgr.shape[:2])
     skin = np.exp(-0.5 * np.minimum(d2, 50.0)).astype(np.float32)
     if blur_sigma_px > 0:
         skin = cv2.GaussianBlur(skin, (0, 0), blur_sigma_px)
