@@ -102,8 +102,7 @@ def main() -> int:
     for stamp, images in Progress(scene.frames(), total=scene.n_frames, label="label diagnosis"):
         t = (int(stamp) - START_STAMP_NS) * 1e-9 - SCENES[args.scene].get("empty_s", 0.0)
         if round((int(stamp) - START_STAMP_NS) * cfg.fps * 1e-9) == args.true_start and t >= 0:
-            pipe.skeleton.estimator.reset()
-            pipe.skeleton.estimator.reseed(int(stamp) - 1, body.joint_positions(pose_at(cfg.motion_name, t, body)))
+            pipe.restart(int(stamp), body.joint_positions(pose_at(cfg.motion_name, t, body)))
         res = pipe.step(stamp, images)
         if t < 0 or not np.all(np.isfinite(res.estimate.joints)):
             continue

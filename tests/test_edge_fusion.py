@@ -7,10 +7,14 @@ import pytest
 
 from artrack.body_model import load_body_model
 from artrack.edge_fusion import EdgeStage, LinkEdgeStatistics, combine
+from artrack.edge_tracker import EdgeTrackerConfig
+from artrack.errors import InputError
 from artrack.lie import exp_se3, inverse_se3, log_se3
 from artrack.motion import pose_at
+from artrack.pipeline import ClosedLoopPipeline, load_pipeline_config
 from artrack.skeleton import LinkGoals, fit_pose
 from artrack.synth import Renderer, default_rig
+from artrack.types import STATUS_LOST, STATUS_TRACKING
 
 
 @pytest.fixture(scope="module")
@@ -55,19 +59,19 @@ def test_fit_to_link_goals_alone_recovers_the_pose():
     assert err < 2e-3, err
 
 
-def test_edges_of_four_views_pull_a_shifted_body_back(scene):
+def _four_view_fit(scene, shift_m, config=None) -> tuple[float, float]:
     """The body rendered at the true pose, the statistics of four views taken about a reference
-    whose root is moved 3.6 cm: one fit to the edge goals alone (one linearisation, as the
-    skeleton does per frame) moves the joints back toward the truth."""
+    whose root is moved by ``shift_m``, then one fit to the edge goals alone (as the skeleton does
+    per frame): the mean joint error (m) before and after."""
     body, cams, renderer = scene
     theta = pose_at("default", 0.8, body)
     images = dict(zip([c.name for c in cams], renderer.render(theta, noise_sigma=2.0)))
     T = body.forward_kinematics(theta)
-    stages = {c.name: EdgeStage(c, body) for c in cams}
+    stages = {c.name: EdgeStage(c, body, config) for c in cams}
     for c in cams:  # polarity colours learnt at the true pose (as at a trusted start)
         stages[c.name].tracker.learn_appearance({c.name: images[c.name]}, T)
     ref_theta = theta.copy()
-    ref_theta[:3] += [0.03, -0.02, 0.0]
+    ref_theta[:3] += shift_m
     stats = combine([stages[c.name].step(images[c.name], body.forward_kinematics(ref_theta)) for c in cams])
     assert stats.cameras == tuple(c.name for c in cams)
     goals = LinkGoals.from_edges(stats, sigma_px=1.0, min_found=8)
@@ -76,7 +80,45 @@ def test_edges_of_four_views_pull_a_shifted_body_back(scene):
                             robust_scale=3.0)
     before = np.linalg.norm(body.joint_positions(ref_theta) - body.joint_positions(theta), axis=1).mean()
     after = np.linalg.norm(body.joint_positions(fitted) - body.joint_positions(theta), axis=1).mean()
-    assert after < 0.85 * before, (before, after)  # measured: 36 mm -> 28 mm
+    return before, after
+
+
+def test_edges_of_four_views_pull_a_shifted_body_back(scene):
+    """A 3.6 cm shift: the edges move the joints back toward the truth."""
+    before, after = _four_view_fit(scene, [0.03, -0.02, 0.0])
+    assert after < 0.85 * before, (before, after)  # measured: 36 mm -> 26 mm
+
+
+def test_iterated_statistics_follow_a_larger_motion_than_one_linearisation(scene):
+    """A 9.4 cm shift, about the search range: the stage's statistics from three cycles of the
+    edge tracker in each view (the default) take the fit much nearer the truth than those after
+    one cycle."""
+    shift = [0.08, -0.05, 0.0]
+    before, one = _four_view_fit(scene, shift, EdgeTrackerConfig(iterations=1))
+    _, three = _four_view_fit(scene, shift, EdgeTrackerConfig(iterations=3))
+    assert three < 0.7 * one < 0.7 * before, (before, one, three)  # measured: 94 -> 83 (1), 42 mm (3)
+
+
+def test_stage_learns_its_colours_again_when_a_new_track_starts(scene):
+    """The appearance is learnt again at the first reference after the body's status becomes
+    TRACKING from another status (the skeleton was re-initialised), and after relearn()."""
+    body, cams, renderer = scene
+    theta = pose_at("default", 0.8, body)
+    img = renderer.render(theta, noise_sigma=2.0)[0]
+    T = body.forward_kinematics(theta)
+    stage = EdgeStage(cams[0], body)
+    stage.step(img, T, STATUS_TRACKING)
+    first = stage.tracker.appearance
+    stage.step(img, T, STATUS_TRACKING)
+    assert stage.tracker.appearance is first  # same track: kept
+    stage.step(img, T, STATUS_LOST)
+    assert stage.tracker.appearance is first
+    stage.step(img, T, STATUS_TRACKING)
+    second = stage.tracker.appearance
+    assert second is not None and second is not first
+    stage.relearn()
+    stage.step(img, T)
+    assert stage.tracker.appearance is not None and stage.tracker.appearance is not second
 
 
 def test_single_view_stage_learns_colours_with_unseen_links(scene):
@@ -90,3 +132,26 @@ def test_single_view_stage_learns_colours_with_unseen_links(scene):
     assert stats.measured.any()
     assert np.all(stats.information[~stats.measured] == 0)
     assert np.all(np.isfinite(stats.information)) and np.all(np.isfinite(stats.information_vector))
+
+
+def test_pipeline_restart_starts_a_track_from_the_given_body(scene):
+    """ClosedLoopPipeline.restart (the benches' correct-start protocol): from the true joints,
+    before any frame, the loop tracks from its first frame with blobs + edges, the edge stages
+    having learnt their appearance at the restart's prediction; bad joints change nothing."""
+    body, cams, renderer = scene
+    pipe = ClosedLoopPipeline(body, cams, load_pipeline_config(edges=True))
+    stamp0, dt = 1_000_000_000, 1e9 / 30
+    pipe.restart(stamp0, body.joint_positions(pose_at("default", 1.0, body)))
+    assert pipe.reference is not None and pipe.reference_status == STATUS_TRACKING
+    assert all(len(p) > 0 for p in pipe.priors.values())
+    theta = pose_at("default", 1.0, body)
+    images = dict(zip([c.name for c in cams], renderer.render(theta, noise_sigma=2.0)))
+    res = pipe.step(stamp0, images)
+    assert res.estimate.status == STATUS_TRACKING
+    assert all(st.tracker.appearance is not None for st in pipe.edge_stages.values())
+    error = np.linalg.norm(res.estimate.joints - body.joint_positions(theta), axis=1).mean()
+    assert error < 0.04, error  # measured: 19 mm (the blob stages have no background model yet)
+    before = pipe.skeleton.estimator.theta.copy()
+    with pytest.raises(InputError, match="reseed joints"):
+        pipe.restart(stamp0 + round(5 * dt), np.zeros((3, 3)))
+    np.testing.assert_array_equal(pipe.skeleton.estimator.theta, before)  # nothing reset

@@ -1,13 +1,23 @@
 """Edge statistics per camera for the skeleton — ALGORITHMS.md §2 "Fusion" with §1.
 
-Each camera's edge stage measures the body's contour edges at the *predicted* pose
-(:class:`artrack.edge_tracker.EdgeTracker`: contour samples, normal search with edge
-polarity, robust per-link statistics, eqs. 7-10) and hands the skeleton one Gaussian per
-link in information form, in the link's own frame (``E = E_ref exp(xi)``, see
-:mod:`artrack.lie`):
+Each camera's edge stage tracks the body's contour edges in its own view from the
+*predicted* pose (:class:`artrack.edge_tracker.EdgeTracker.step`: ``iterations`` cycles of
+contour samples, normal search with edge polarity, robust per-link statistics (eqs. 7-10)
+with the damping prior, and Algorithm 1's articulated update), then measures the edges once
+more at the pose it reached, and hands the skeleton one Gaussian per link in information
+form, in the link's own frame about the prediction (``E = E_ref exp(xi)``, see :mod:`artrack.lie`):
 
-    C_i  (6, 6)   information of the link's motion from this camera's edges (px⁻² per m², rad²)
-    eta_i (6,)    C_i xi_hat_i
+    C_i  (6, 6)   information of the link's motion from this camera's edges at the pose reached
+                  (px⁻² per m², rad²; no damping prior)
+    eta_i (6,)    C_i xi_hat_i, xi_hat_i the motion from the prediction to the pose reached plus
+                  the residual motion measured there
+
+A single linearisation at the prediction recovers only part of a frame's motion — a swinging
+limb moves further than one re-weighted step follows — and in the closed loop from a correct
+pose, blobs with it were no better than blobs alone (seeds 1-3: 200 against 157 mm); iterated
+per view, blobs + edges beat blobs alone (``bench/closed_loop.py --true-start 60``, README).
+The appearance (edge polarity colours) is learnt at the first prediction and again whenever the
+skeleton is (re-)initialised (:meth:`EdgeStage.step` with ``status``; :meth:`EdgeStage.relearn`).
 
 Cameras combine by summing (all share ``xi`` per link, §2); the skeleton then uses
 ``(xi_i - xi_hat_i)ᵀ C_i (xi_i - xi_hat_i) / sigma²`` as a soft constraint on each link
@@ -25,7 +35,9 @@ import numpy as np
 
 from .body_model import BodyModel
 from .cameras import Camera
-from .edge_tracker import STAGES, EdgeTracker, EdgeTrackerConfig
+from .edge_tracker import EdgeTracker, EdgeTrackerConfig
+from .lie import inverse_se3, log_se3
+from .types import STATUS_TRACKING
 
 __all__ = ["EdgeStage", "LinkEdgeStatistics", "combine"]
 
@@ -77,28 +89,42 @@ def combine(stats: Sequence[LinkEdgeStatistics]) -> LinkEdgeStatistics | None:
 
 
 class EdgeStage:
-    """One camera's edge measurements at the predicted pose (the offline form of the
-    ``edge_features`` node). The edge-polarity colours are learnt on the first frame it is
-    given, at that frame's reference pose (:meth:`EdgeTracker.learn_appearance`)."""
+    """One camera's edge statistics about the predicted pose (the offline form of the
+    ``edge_features`` node; module docstring). The edge-polarity colours are learnt on the first
+    frame it is given, at that frame's reference pose (:meth:`EdgeTracker.learn_appearance`), and
+    learnt again at the first reference after :meth:`relearn` or after the reference's ``status``
+    became TRACKING from another status (the skeleton was (re-)initialised: a new track)."""
 
     def __init__(self, camera: Camera, body: BodyModel, config: EdgeTrackerConfig | None = None):
         self.camera = camera
         self.tracker = EdgeTracker(body, [camera], config)
         self.n_links = len(body.links)
         self.timings_ms: dict[str, float] = {}
+        self.status: int | None = None  # of the last reference given
 
-    def step(self, image_bgr: np.ndarray, reference: np.ndarray) -> LinkEdgeStatistics:
-        """Statistics of one image about ``reference`` (L, 4, 4) world_from_link."""
+    def relearn(self) -> None:
+        """Forget the appearance: it is learnt again at the next reference (a new, trusted pose)."""
+        self.tracker.appearance = None
+
+    def step(self, image_bgr: np.ndarray, reference: np.ndarray, status: int | None = None) -> LinkEdgeStatistics:
+        """Statistics of one image about ``reference`` (L, 4, 4) world_from_link (module docstring);
+        ``status`` of the body the reference comes from (TrackedBody status, None: not known)."""
         cam, tr = self.camera, self.tracker
         E = np.asarray(reference, dtype=float)
         if E.shape != (self.n_links, 4, 4):
             raise ValueError(f"edge stage '{cam.name}': reference must be ({self.n_links}, 4, 4), got {E.shape}")
+        if status is not None:
+            if status == STATUS_TRACKING and self.status is not None and self.status != STATUS_TRACKING:
+                self.relearn()
+            self.status = int(status)
         if tr.config.polarity and tr.appearance is None:
             tr.learn_appearance({cam.name: image_bgr}, E)
-        timings = dict.fromkeys(STAGES, 0.0)
+        reached, _, _, timings = tr.step({cam.name: image_bgr}, E)
         grads = {cam.name: tr.prepare(cam, image_bgr)}
-        xi_hat, C, _ = tr.measure(grads, E, timings)  # no damping prior: unseen directions carry no information
-        eta = np.einsum("nij,nj->ni", C, xi_hat)
+        xi_res, C, _ = tr.measure(grads, reached, timings)  # no damping prior: unseen directions carry none
+        xi_hat = log_se3(np.einsum("lij,ljk->lik", inverse_se3(E), reached)) + xi_res
+        measured = np.any(C != 0, axis=(1, 2))
+        eta = np.einsum("nij,nj->ni", C, np.where(measured[:, None], xi_hat, 0.0))
         m = tr.last_measurements.get(cam.name)
         found = np.zeros(self.n_links, dtype=np.int64)
         if m is not None:

@@ -190,6 +190,7 @@ class ClosedLoopPipeline:
         self.link_names = list(body.link_names)
         self.reference: np.ndarray | None = None  # world_from_link of the last prediction (edges)
         self.reference_stamp = 0
+        self.reference_status: int | None = None  # its status (a new track: the edge stages relearn)
         self.priors: dict[str, list[Prior2D]] = {}
         self.frames = 0
 
@@ -209,16 +210,13 @@ class ClosedLoopPipeline:
         if self.edge_stages:
             edges = combine([self.wire.edges(
                 stamp_ns, name, self.link_names,
-                self.edge_stages[name].step(images[name], self.reference) if self.reference is not None else None,
+                self.edge_stages[name].step(images[name], self.reference, self.reference_status)
+                if self.reference is not None else None,
                 self.reference_stamp) for name in sorted(images) if name in self.edge_stages])
         t_edges = time.perf_counter()
         estimate, prediction = self.skeleton.step(stamp_ns, blobs, edges)
         t2 = time.perf_counter()
-        wired = self.wire.body(prediction)
-        self.reference = link_poses(wired) if self.edge_stages else None
-        self.reference_stamp = prediction.stamp_ns
-        projected = self.projection.step(wired)
-        self.priors = {name: self.wire.priors(name, p, prediction.stamp_ns) for name, p in projected.items()}
+        self._feed_back(prediction)
         t3 = time.perf_counter()
         self.frames += 1
         timings = {"blobs_2d": (t1 - t0) * 1e3, "skeleton_3d": (t2 - t_edges) * 1e3, "projection": (t3 - t2) * 1e3}
@@ -231,6 +229,30 @@ class ClosedLoopPipeline:
         for k, v in self.skeleton.estimator.timings_ms.items():
             timings[f"skeleton_3d.{k}"] = v
         return FrameResult(stamp_ns, blobs, estimate, prediction, used, self.priors, timings)
+
+    def _feed_back(self, prediction: BodyEstimate) -> None:
+        """The prediction for the next frame becomes the blob priors and the edge reference."""
+        wired = self.wire.body(prediction)
+        self.reference = link_poses(wired) if self.edge_stages else None
+        self.reference_stamp = prediction.stamp_ns
+        self.reference_status = wired.status
+        projected = self.projection.step(wired)
+        self.priors = {name: self.wire.priors(name, p, prediction.stamp_ns) for name, p in projected.items()}
+
+    def restart(self, stamp_ns: int, joints: np.ndarray) -> None:
+        """Start a new track from a known body before the frame at ``stamp_ns``: the skeleton is
+        reset and re-seeded with ``joints`` (J, 3) world m (:meth:`Estimator.reseed`), its
+        prediction for that frame becomes the priors and the edge reference, and the edge stages
+        learn their appearance again there. The benches' "correct start" protocol (the loop's
+        drift without the automatic start-up); InputError for bad joints."""
+        estimator = self.skeleton.estimator
+        joints = estimator.check_reseed_joints(joints)  # before anything is reset
+        estimator.reset()
+        estimator.reseed(int(stamp_ns) - 1, joints)
+        for stage in self.edge_stages.values():
+            stage.relearn()
+        self._feed_back(estimator.predict(int(stamp_ns)))
+        self.frames = max(self.frames, 1)  # the priors are fresh: the blob stages use them
 
 
 def load_pipeline_config(

@@ -830,16 +830,21 @@ class _Estimator:
             self._verify_facing(stamp_ns, obs)
         return self._estimate(stamp_ns)
 
+    def check_reseed_joints(self, joints: np.ndarray) -> np.ndarray:
+        """``joints`` as a (J, 3) float array for :meth:`reseed`; InputError if they are not J finite points."""
+        joints = np.asarray(joints, dtype=float)
+        if joints.shape != (len(self.body.joint_names), 3) or not np.all(np.isfinite(joints)):
+            raise InputError(f"skeleton: reseed joints must be {len(self.body.joint_names)} finite 3-D points, "
+                             f"got shape {joints.shape}")
+        return joints
+
     def reseed(self, stamp_ns: int, joints: np.ndarray, sigma_m: float = 0.05) -> bool:
         """Re-initialise from another estimator's body when this one is lost or has not started
         (ALGORITHMS.md §4: the loose-limbed body "hands its poses to the skeleton"): the body model
         fitted to the 15 output joints (``joints`` (J, 3) world m, order ``body.joint_names``,
         isotropic ``sigma_m``) from the rest pose at four headings. Returns whether it was taken
         (False while tracking). InputError for a wrong shape or non-finite joints."""
-        joints = np.asarray(joints, dtype=float)
-        if joints.shape != (len(self.body.joint_names), 3) or not np.all(np.isfinite(joints)):
-            raise InputError(f"skeleton: reseed joints must be {len(self.body.joint_names)} finite 3-D points, "
-                             f"got shape {joints.shape}")
+        joints = self.check_reseed_joints(joints)
         if self.theta is not None and self.status != STATUS_LOST:
             return False
         info = np.eye(3) / sigma_m**2

@@ -1,9 +1,10 @@
 """edge_features: one camera's edge measurements about the predicted body (ALGORITHMS.md §2).
 
 Subscribes /cameras/<cam>/image_raw, the camera's camera_info and extrinsics, and
-/artrack/prediction. For each image it measures the body's contour edges about the
+/artrack/prediction. For each image it tracks the body's contour edges in its view from the
 prediction for that frame (contour samples of the quadric body, 1-D search along the image
-normals with edge polarity, robust per-link motion statistics, eqs. 7-10) and publishes
+normals with edge polarity, robust per-link motion statistics, eqs. 7-10, Algorithm 1; a few
+cycles), measures them at the pose reached (artrack.edge_fusion.EdgeStage) and publishes
 /cameras/<cam>/edge_statistics (artrack_msgs/LinkEdgeStatistics, information form; empty when
 there is no prediction with links), which the skeleton node fuses with the blobs ("Fusion").
 In lockstep mode every image after the first waits for the prediction of its frame.
@@ -96,17 +97,17 @@ class EdgeFeaturesNode(Node):
         except (ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad prediction on {PREDICTION_TOPIC}: {exc}")
             return
-        self.queue.add_input(body.stamp_ns, poses)
+        self.queue.add_input(body.stamp_ns, (poses, body.status))
         self.process_queue()
 
     def process_queue(self) -> None:
         if self.stage is None:  # the camera's calibration has not arrived yet
             return
         for stamp, image, found in self.queue.ready(lambda: self.frames == 0):
-            ref_stamp, reference = found if found is not None else (0, None)
+            ref_stamp, (reference, status) = found if found is not None else (0, (None, None))
             t0 = time.monotonic()
             try:
-                stats = self.stage.step(image, reference) if reference is not None else None
+                stats = self.stage.step(image, reference, status) if reference is not None else None
             except (ArtrackError, ValueError) as exc:
                 self.get_logger().error(f"frame {stamp}: {exc}")
                 self.diag.drop()
