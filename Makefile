@@ -49,8 +49,8 @@ demo: setup data
 
 # The synthetic demo (ground truth, MPJPE): synthesise a 4-camera scene, run the same
 # graph on it, print fps and MPJPE, write the overlay montage and the error-over-time plot
-# to out/demo-synth/. (Edge features, `--set edges=true`, are left out: their result
-# swings 122-251 mm under rounding-level changes.)
+# to out/demo-synth/. (Edge features, `--set edges=true`, are left out: from this bag's
+# automatic start-up they make it worse, 151.6 -> 231.3 mm; they help from a correct pose.)
 demo-synth: setup
 	@mkdir -p $(DEMO_OUT) bags
 	@$(ENV) [ -e $(DEMO_BAG) ] || artrack synth --seed 0 --image-format jpeg --out $(DEMO_BAG)
