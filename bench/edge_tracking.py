@@ -9,7 +9,9 @@ runs on its own, each frame's prediction being the previous frame's estimate (no
 cue). It is run with all 4 views and with 1 view (cam01). For each run the table shows MPJPE
 (mm, over all frames after the first, all 15 output joints and the limb joints
 elbows/knees/wrists/ankles), the last-second MPJPE (drift), the worst frame, "held" (seconds until
-the first frame with MPJPE > 100 mm), the frame rate of ``step`` (wall clock
+the first frame with MPJPE > 100 mm), the joints' mean reprojection error in the tracked views
+("2-D px", over the run and over its first second: a single view keeps the image fit long after
+the depth along its rays has drifted), the frame rate of ``step`` (wall clock
 on this machine, images already in memory), the process CPU time of ``step`` (ms per frame: less
 sensitive than the wall clock to other work on a shared machine) and the mean per-stage wall-clock
 times (ms per frame).
@@ -80,6 +82,9 @@ def run(body, cams, frames, views: int, config: EdgeTrackerConfig, label: str) -
     pred = np.array(pred[1:])
     truth = np.array([f.joints for f in frames[1:]])
     overall, per_joint, per_frame = mpjpe(pred, truth)
+    # the same estimate in the images it was tracked in: mean joint reprojection error, px
+    reprojection = np.mean([np.linalg.norm(c.project(pred.reshape(-1, 3))[0] - c.project(truth.reshape(-1, 3))[0],
+                                           axis=1).reshape(len(pred), -1).mean(axis=1) for c in use], axis=0)
     limb = [body.joint_names.index(n) for n in LIMB_JOINTS]
     n = len(frames) - 1
     fps_in = 1.0 / max(frames[1].stamp_ns - frames[0].stamp_ns, 1) * 1e9
@@ -91,6 +96,8 @@ def run(body, cams, frames, views: int, config: EdgeTrackerConfig, label: str) -
         "last_second_mpjpe_mm": float(np.mean(last)),
         "max_frame_mpjpe_mm": float(np.max(per_frame)),
         "held_s": float(np.argmax(np.r_[per_frame, np.inf] > LOST_MM) / fps_in),
+        "reprojection_px": float(reprojection.mean()),
+        "reprojection_first_s_px": float(reprojection[: int(round(fps_in))].mean()),
         "fps": n / t_total,
         "cpu_ms": cpu_total / n * 1e3,
         "stage_ms": {s: stage[s] / n for s in STAGES},
@@ -122,14 +129,15 @@ def main() -> None:
     print(f"edge tracking alone from the true first pose: seed {args.seed}, {args.duration:g} s at {args.fps:g} fps, "
           f"iterations {config.iterations}, select {config.select}, colour {config.colour}")
     head = (f"{'views':>5} {'res':>8} {'MPJPE mm':>9} {'limbs mm':>9} {'last 1s':>8} {'max':>7} "
-            f"{'held s':>6} {'fps':>6} {'cpu ms':>6} | "
+            f"{'held s':>6} {'2-D px':>6} {'1st s':>6} {'fps':>6} {'cpu ms':>6} | "
             + " ".join(f"{s[:6]:>7}" for s in STAGES) + "  (ms/frame)")
     print(head)
     print("-" * len(head))
     for r in results:
         print(f"{r['views']:>5} {r['resolution']:>8} {r['mpjpe_mm']:>9.1f} {r['limb_mpjpe_mm']:>9.1f} "
               f"{r['last_second_mpjpe_mm']:>8.1f} {r['max_frame_mpjpe_mm']:>7.1f} "
-              f"{r['held_s']:>6.2f} {r['fps']:>6.1f} {r['cpu_ms']:>6.1f} | "
+              f"{r['held_s']:>6.2f} {r['reprojection_px']:>6.1f} {r['reprojection_first_s_px']:>6.1f} "
+              f"{r['fps']:>6.1f} {r['cpu_ms']:>6.1f} | "
               + " ".join(f"{r['stage_ms'][s]:>7.1f}" for s in STAGES))
     print(json.dumps({"edge_tracking": results, "seed": args.seed, "duration_s": args.duration,
                       "config": config.as_dict()}))
