@@ -10,7 +10,8 @@ form, in the link's own frame about the prediction (``E = E_ref exp(xi)``, see :
     C_i  (6, 6)   information of the link's motion from this camera's edges at the pose reached
                   (px⁻² per m², rad²; no damping prior)
     eta_i (6,)    C_i xi_hat_i, xi_hat_i the motion from the prediction to the pose reached plus
-                  the residual motion measured there
+                  the residual motion measured there (tangent spaces at the prediction and at
+                  the pose reached identified: first order in the residual)
 
 A single linearisation at the prediction recovers only part of a frame's motion — a swinging
 limb moves further than one re-weighted step follows — and in the closed loop from a correct
