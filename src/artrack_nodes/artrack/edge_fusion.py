@@ -29,6 +29,7 @@ and the body model.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -36,7 +37,7 @@ import numpy as np
 
 from .body_model import BodyModel
 from .cameras import Camera
-from .edge_tracker import EdgeTracker, EdgeTrackerConfig
+from .edge_tracker import STAGES, EdgeTracker, EdgeTrackerConfig
 from .lie import inverse_se3, log_se3
 from .types import STATUS_TRACKING
 
@@ -120,8 +121,11 @@ class EdgeStage:
             self.status = int(status)
         if tr.config.polarity and tr.appearance is None:
             tr.learn_appearance({cam.name: image_bgr}, E)
-        reached, _, _, timings = tr.step({cam.name: image_bgr}, E)
+        timings = dict.fromkeys(STAGES, 0.0)
+        t0 = time.perf_counter()
         grads = {cam.name: tr.prepare(cam, image_bgr)}
+        timings["gradients"] = (time.perf_counter() - t0) * 1e3
+        reached, _, _ = tr.track(grads, E, timings)
         xi_res, C, _ = tr.measure(grads, reached, timings)  # no damping prior: unseen directions carry none
         xi_hat = log_se3(np.einsum("lij,ljk->lik", inverse_se3(E), reached)) + xi_res
         measured = np.any(C != 0, axis=(1, 2))

@@ -404,6 +404,15 @@ class EdgeTracker:
             raise ValueError(f"EdgeTracker.step: link_poses_world must be ({self.n_links}, 4, 4), got {E.shape}")
         if self.config.polarity and self.appearance is None:
             self.learn_appearance(images_by_camera, E)
+        E, xi_hat, C = self.track(grads, E, timings)
+        return E, xi_hat, C, timings
+
+    def track(self, grads: Mapping[str, Any], link_poses_world: np.ndarray, timings: dict[str, float]
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ``iterations`` cycles of :meth:`step` on prepared images (``grads``: camera name ->
+        :meth:`prepare`), from (L, 4, 4) world_from_link; adds its times to ``timings``. Returns
+        (world_from_link reached, xi_hat, C of the last iteration)."""
+        E = np.asarray(link_poses_world, dtype=float)
         xi_hat = np.zeros((self.n_links, 6))
         C = np.zeros((self.n_links, 6, 6))
         for _ in range(self.config.iterations):
@@ -421,4 +430,4 @@ class EdgeTracker:
                 E_new[i] = E_new[p] @ inverse_se3(E[p]) @ E[i]
             E = E_new
             timings["propagation"] += (time.perf_counter() - t1) * 1e3
-        return E, xi_hat, C, timings
+        return E, xi_hat, C
