@@ -171,3 +171,29 @@ def test_error_names_file(tmp_path, raw):
         load_body_model(path)
     with pytest.raises(BodyModelError, match="missing.yaml"):
         load_body_model(tmp_path / "missing.yaml")
+
+
+def test_point_and_link_twist_jacobians_match_finite_differences(body):
+    """BodyModel.point_jacobian / link_twist_jacobian (the analytic Jacobian of the body fit) against
+    forward differences of the forward kinematics at a random pose within the limits."""
+    from artrack.lie import inverse_se3, log_se3
+
+    rng = np.random.default_rng(4)
+    theta = body.clip(body.rest_pose() + rng.normal(0.0, 0.6, body.n_dof))
+    links = np.arange(len(body.links))
+    points = rng.normal(0.0, 0.2, (len(links), 3))
+    J = body.point_jacobian(theta, links, points)
+    G = body.link_twist_jacobian(theta, links)
+    assert J.shape == (len(links), 3, body.n_dof) and G.shape == (len(links), 6, body.n_dof)
+    T0 = body.forward_kinematics(theta)
+    x0 = body.transform_points(T0, links, points)
+    h = 1e-6
+    for d in range(body.n_dof):
+        t = theta.copy()
+        t[d] += h
+        T = body.forward_kinematics(t)
+        np.testing.assert_allclose(J[:, :, d], (body.transform_points(T, links, points) - x0) / h, atol=2e-5)
+        np.testing.assert_allclose(G[:, :, d], log_se3(inverse_se3(T0) @ T) / h, atol=2e-5)
+    # a dof moves only its own link and the links below it
+    hand = body.link_names.index("l_hand")
+    assert not np.any(J[body.link_names.index("r_hand"), :, body.links[hand].dof_slice])

@@ -14,10 +14,12 @@ from artrack.body_model import load_body_model
 from artrack.cameras import Camera
 from artrack.config import config_dir
 from artrack.errors import InputError
+from artrack.lie import exp_se3, inverse_se3
 from artrack.motion import pose_at
 from artrack.skeleton import (
     BodyKinematics,
     GroundContact,
+    LinkGoals,
     PointTarget,
     SkeletonConfig,
     fit_pose,
@@ -402,6 +404,8 @@ def test_config_file_and_errors(body, cameras):
         load_skeleton_config({"startup": {"start_xy": [1.0, 2.0, 3.0]}})
     with pytest.raises(InputError, match="ground_sigma_m"):
         load_skeleton_config({"fit": {"ground_sigma_m": -0.1}})
+    with pytest.raises(InputError, match="fit.tolerance"):
+        load_skeleton_config({"fit": {"tolerance": 0.0}})
     pose2sim = yaml.safe_load((config_dir() / "pose2sim_skeleton.yaml").read_text())
     assert load_skeleton_config(pose2sim).fit.ground_sigma_m > 0  # the recording's file loads
     with pytest.raises(InputError, match="unknown estimator kind"):
@@ -462,6 +466,33 @@ def test_ground_contact_keeps_a_foot_on_the_floor(body):
         lowest[name] = body.joint_positions(theta)[ankles, 2].min() - ground.height.min()
     assert lowest["plain"] > 0.06, lowest
     assert -0.01 < lowest["ground"] < 0.02, lowest
+
+
+def test_analytic_and_numeric_jacobians_give_the_same_fit(body):
+    """fit_pose(jacobian='analytic') (default) and 'numeric' (forward differences) reach the same pose
+    and cost with every residual kind on: blob targets with a Cauchy loss, link goals (edge statistics,
+    whose log map is linearised to first order), the floor contact and both regularisers."""
+    rng = np.random.default_rng(1)
+    truth = body.clip(body.rest_pose() + rng.normal(0.0, 0.3, body.n_dof))
+    truth[2] = 0.95
+    means, _ = body.blob_gaussians(truth)
+    T = body.forward_kinematics(truth)
+    targets = [PointTarget(int(link), (np.linalg.inv(T[link]) @ np.append(means[k], 1.0))[:3],
+                           means[k] + rng.normal(0.0, 0.01, 3), np.eye(3) / 0.02**2)
+               for k, link in enumerate(body.blob_links)]
+    goal_links = np.array([body.link_names.index(n) for n in ("l_forearm", "l_hand", "r_forearm", "r_hand")])
+    reference = np.array([T[i] @ exp_se3(rng.normal(0.0, 0.03, 6)) for i in goal_links])
+    goals = LinkGoals(goal_links, inverse_se3(reference), rng.normal(0.0, 0.02, (4, 6)),
+                      np.tile(5.0 * np.eye(6), (4, 1, 1)))
+    start = body.clip(truth + rng.normal(0.0, 0.1, body.n_dof))
+    kw = dict(rest=body.rest_pose(), rest_sigma=0.5, previous=start, previous_sigma=0.3, robust_scale=3.0,
+              link_goals=goals, ground=GroundContact.from_body(body, 0.01), max_nfev=200)
+    fits = {j: fit_pose(body, start, targets, jacobian=j, **kw) for j in ("analytic", "numeric")}
+    np.testing.assert_allclose(fits["analytic"][0], fits["numeric"][0], atol=1e-4)
+    assert abs(fits["analytic"][1] - fits["numeric"][1]) < 1e-6 * fits["numeric"][1]
+    assert np.linalg.norm(fits["analytic"][0] - start) > 0.05  # the fit did move
+    with pytest.raises(ValueError, match="jacobian"):
+        fit_pose(body, start, targets, jacobian="exact")
 
 
 def test_kinematic_keeps_fast_limbs_when_the_wave_starts(body, cameras):

@@ -170,6 +170,26 @@ class BodyModel:
         self._ball_cols = np.array([np.arange(links[i].dof_slice.start, links[i].dof_slice.stop)
                                     for i in self._ball_links], int).reshape(-1, 3)
         self._offsets = np.array([lk.offset for lk in links], float)
+        # Jacobian bookkeeping: the link each dof moves, and which links each link carries.
+        self._dof_link = np.concatenate([np.full(lk.n_dof, i) for i, lk in enumerate(links)]).astype(int)
+        carries = np.eye(len(links), dtype=bool)  # carries[l, a]: link a is l or an ancestor of l
+        for i in range(len(links)):
+            if self.parent_index[i] >= 0:
+                carries[i] |= carries[self.parent_index[i]]
+        #: (L, n_dof) bool: dof d moves link l
+        self.dof_moves_link = carries[:, self._dof_link]
+        rv = [np.arange(lk.dof_slice.start + (3 if lk.joint == "free" else 0), lk.dof_slice.stop)
+              for lk in links if lk.joint in ("free", "ball")]
+        hinge = [lk.dof_slice.start for lk in links if lk.joint == "hinge"]
+        self._dof_kinds = (
+            np.array(rv, int).reshape(-1, 3),  # rotation-vector dofs, 3 per link (root: its last 3)
+            np.array([i for i, lk in enumerate(links) if lk.joint in ("free", "ball")], int),
+            np.array(hinge, int),
+            np.array([i for i, lk in enumerate(links) if lk.joint == "hinge"], int),
+            np.array([lk.axis for lk in links if lk.joint == "hinge"], float).reshape(-1, 3),
+            np.concatenate([np.arange(lk.dof_slice.start, lk.dof_slice.start + 3)
+                            for lk in links if lk.joint == "free"] or [np.zeros(0)]).astype(int),
+        )
         # Flattened capsule view of all shapes.
         p0, p1, rad, li, col = [], [], [], [], []
         for i, lk in enumerate(links):
@@ -259,6 +279,52 @@ class BodyModel:
         out[..., 3, 3] = 1.0
         return out.reshape(*batch, n_links, 4, 4)
 
+    def dof_twists(self, theta: np.ndarray, world_from_link: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """World velocities of the dofs at theta (n_dof,): (v (n_dof, 3), w (n_dof, 3)) such that a point y
+        (world, m) on a link that dof d moves (:attr:`dof_moves_link`) moves by ``(v_d + w_d × y) dθ_d``.
+
+        Root translation: ``v = e_k``, ``w = 0``. A rotation about the link origin o with world angular
+        velocity w: ``v = o × w``; ball and root rotation vectors: ``w = R_link J_r(θ_link)`` (the right
+        Jacobian of SO(3), ``J_r(θ) = J_l(−θ)``, :func:`artrack.lie.left_jacobian_so3`), hinges: ``w = R_link axis``."""
+        from .lie import left_jacobian_so3  # lie imports errors only; kept local to keep this module light
+
+        theta = np.asarray(theta, float).reshape(self.n_dof)
+        T = self.forward_kinematics(theta) if world_from_link is None else world_from_link
+        rv, rv_link, hinge, hinge_link, hinge_axis, trans = self._dof_kinds
+        v = np.zeros((self.n_dof, 3))
+        w = np.zeros((self.n_dof, 3))
+        if len(rv):
+            W = T[rv_link, :3, :3] @ left_jacobian_so3(-theta[rv])  # columns: world axes of the 3 dofs
+            w[rv] = np.swapaxes(W, 1, 2)
+        if len(hinge):
+            w[hinge] = np.einsum("hij,hj->hi", T[hinge_link, :3, :3], hinge_axis)
+        v = _cross(T[self._dof_link, :3, 3], w)
+        v[trans] = np.eye(3)[np.arange(len(trans)) % 3]
+        return v, w
+
+    def point_jacobian(self, theta: np.ndarray, link_idx: np.ndarray, points: np.ndarray,
+                       world_from_link: np.ndarray | None = None) -> np.ndarray:
+        """(P, 3, n_dof): d(world position)/d(theta) of link-frame points (P, 3) on links link_idx (P,)."""
+        T = self.forward_kinematics(theta) if world_from_link is None else world_from_link
+        link_idx = np.asarray(link_idx, int)
+        x = self.transform_points(T, link_idx, np.asarray(points, float).reshape(-1, 3))
+        v, w = self.dof_twists(theta, T)
+        vel = v[None] + _cross(w[None], x[:, None, :])  # (P, n_dof, 3)
+        return np.swapaxes(vel * self.dof_moves_link[link_idx][..., None], 1, 2)
+
+    def link_twist_jacobian(self, theta: np.ndarray, link_idx: np.ndarray,
+                            world_from_link: np.ndarray | None = None) -> np.ndarray:
+        """(G, 6, n_dof): the links' motions in their own frames per unit dof, ``(v, w)`` as in
+        :mod:`artrack.lie` (``E(θ + dθ) ≈ E(θ) exp(J dθ)``)."""
+        T = self.forward_kinematics(theta) if world_from_link is None else world_from_link
+        link_idx = np.asarray(link_idx, int)
+        v, w = self.dof_twists(theta, T)
+        R, o = T[link_idx, :3, :3], T[link_idx, :3, 3]
+        lin = v[None] + _cross(w[None], o[:, None, :])  # (G, n_dof, 3): velocity of each link origin
+        out = np.concatenate([np.einsum("gji,gdj->gid", R, lin), np.einsum("gji,dj->gid", R, w)], axis=1)
+        return out * self.dof_moves_link[link_idx][:, None, :]
+
     @staticmethod
     def transform_points(world_from_link: np.ndarray, link_idx: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Map link-frame points to the world.
@@ -318,6 +384,13 @@ class BodyModel:
         p0 = self.transform_points(T, self._cap_link, self._cap_p0)
         p1 = self.transform_points(T, self._cap_link, self._cap_p1)
         return p0, p1, self._cap_radius.copy(), self._cap_link.copy(), list(self._cap_colour)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` over the last axis (broadcast), without its per-call overhead on small arrays."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def _axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:

@@ -34,6 +34,7 @@ __all__ = [
     "hat",
     "inverse_se3",
     "log_se3",
+    "left_jacobian_so3",
     "make_se3",
     "skew",
     "vee",
@@ -57,6 +58,20 @@ def skew(w: np.ndarray) -> np.ndarray:
     out[..., 2, 0] = -w[..., 1]
     out[..., 2, 1] = w[..., 0]
     return out
+
+
+def left_jacobian_so3(r: np.ndarray) -> np.ndarray:
+    """Left Jacobian J_l(r) (..., 3, 3) of SO(3) at rotation vectors r (..., 3):
+    exp(r + δ) ≈ exp(J_l(r) δ) exp(r); the right Jacobian is ``J_l(-r)``: exp(r + δ) ≈ exp(r) exp(J_l(-r) δ)."""
+    r = np.asarray(r, float)
+    th2 = np.sum(r * r, axis=-1)
+    th = np.sqrt(th2)
+    small = th < 1e-6
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
+    b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - np.sin(ths)) / ths**3)
+    K = skew(r)
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
 def _generators() -> np.ndarray:

@@ -35,7 +35,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from .body_model import BodyModel
-from .lie import skew
+from .lie import left_jacobian_so3, skew
 
 __all__ = [
     "DEFAULT_ACTIVE_LINKS",
@@ -51,20 +51,6 @@ DEFAULT_ACTIVE_LINKS = ("torso", "head", "l_upper_arm", "l_forearm", "r_upper_ar
 DEFAULT_POINT_LINKS = ("torso", "head", "l_upper_arm", "l_forearm", "l_hand", "r_upper_arm", "r_forearm",
                        "r_hand")
 HAND_LINKS = ("l_hand", "r_hand")
-
-
-def left_jacobian_so3(r: np.ndarray) -> np.ndarray:
-    """Left Jacobian J_l(r) (..., 3, 3) of SO(3) at rotation vectors r (..., 3):
-    exp(r + δ) ≈ exp(J_l(r) δ) exp(r)."""
-    r = np.asarray(r, float)
-    th2 = np.sum(r * r, axis=-1)
-    th = np.sqrt(th2)
-    small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
-    b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - np.sin(ths)) / ths**3)
-    K = skew(r)
-    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
 def _rotate(rotvec: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -115,7 +115,7 @@ from .constraints import (
 )
 from .errors import InputError
 from .kalman import ConstantAccelerationKF
-from .lie import inverse_se3, log_se3
+from .lie import inverse_se3, log_se3, skew
 from .triangulation import midpoint, triangulate_blob, triangulate_blobs
 from .types import (
     STATUS_INITIALIZING,
@@ -187,6 +187,7 @@ class FitConfig:
 
     previous_sigma_rad: float = 2.0
     max_nfev: int = 40
+    tolerance: float = 1e-3
     predict_velocity_sigma: float = 1.0
     robust_scale: float = 3.0
     edge_sigma_px: float = 1.0
@@ -312,6 +313,8 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
     for name, value in non_negative:
         if value < 0:
             raise InputError(f"skeleton config: field '{name}' must be >= 0 (got {value!r})")
+    if not 1e-12 <= out.fit.tolerance < 1.0:
+        raise InputError(f"skeleton config: field 'fit.tolerance' must be in [1e-12, 1) (got {out.fit.tolerance!r})")
     if out.measurement.blob_cov not in ("shape+state", "state"):
         raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
     return out
@@ -513,13 +516,20 @@ def fit_pose(
     robust_scale: float = 0.0,
     link_goals: LinkGoals | None = None,
     ground: GroundContact | None = None,
+    jacobian: str = "analytic",
+    tolerance: float = 1e-8,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Bounded least-squares fit of theta to 3-D point targets (and, optionally, link motions).
 
     Minimises ``½ Σ ‖U_k (x_k(θ) − y_k)‖² + ½ Σ_j ((θ_j − rest_j)/σ_r)² + ½ Σ_j ((θ_j −
     prev_j)/σ_p)²`` (regularisers on the non-root dofs j) subject to the joint limits
-    (``scipy.optimize.least_squares``, 'trf'), with a batched finite-difference Jacobian
-    (one FK call). rest_sigma: scalar or per-dof (n_dof,) rad. robust_scale > 0: Cauchy loss
+    (``scipy.optimize.least_squares``, 'trf'). jacobian: ``'analytic'`` (default) —
+    :meth:`BodyModel.point_jacobian` / :meth:`BodyModel.link_twist_jacobian` (exact for the point,
+    floor and regulariser residuals; for link goals the log map's Jacobian is taken to first order
+    in the link's motion ξ from its reference, ``J_r⁻¹(ξ) ≈ I + ½ ad(ξ)``, error O(|ξ|²)) — or ``'numeric'``: forward
+    differences, all dofs in one batched FK call (the same fits, tested). tolerance: scipy's ftol = xtol
+    = gtol (``fit.tolerance``; most frames stop on it, the others at max_nfev). rest_sigma: scalar or
+    per-dof (n_dof,) rad. robust_scale > 0: Cauchy loss
     on the whitened residuals with this scale (sigmas), so that a grossly wrong target (a
     mislabelled blob) pulls little; 0: plain least squares. link_goals: soft constraints on
     link poses, ``½ Σ_i ‖S_i (log(E_ref,i⁻¹ E_i(θ)) − ξ̂_i)‖²`` (the edge statistics of
@@ -561,18 +571,45 @@ def fit_pose(
 
     fun = residuals
     h = 1e-6
+    reg_rows = [np.zeros((jd.size, body.n_dof)) for _ in reg_w]
+    for rows, w in zip(reg_rows, reg_w, strict=True):
+        rows[np.arange(jd.size), jd] = w
 
-    def jac(theta):
+    def jac_numeric(theta):
         batch = theta[None] + h * np.eye(body.n_dof)
         batch = np.vstack([theta[None], batch])
         r = residuals(batch)
         return ((r[1:] - r[0]) / h).T
 
+    def jac_analytic(theta):
+        T = body.forward_kinematics(theta)
+        out = [np.einsum("pij,pjd->pid", U, body.point_jacobian(theta, links, local, T)).reshape(-1, body.n_dof)]
+        if link_goals is not None and len(link_goals.links):
+            g = link_goals
+            xi = log_se3(g.inverse_reference @ T[g.links])
+            ad = np.zeros((len(xi), 6, 6))  # ad(xi) = [[skew(w), skew(v)], [0, skew(w)]]
+            ad[:, :3, :3] = ad[:, 3:, 3:] = skew(xi[:, 3:])
+            ad[:, :3, 3:] = skew(xi[:, :3])
+            dlog = np.eye(6) + 0.5 * ad
+            B = body.link_twist_jacobian(theta, g.links, T)
+            out.append(np.einsum("gij,gjk,gkd->gid", g.sqrt_information, dlog, B).reshape(-1, body.n_dof))
+        if ground is not None:
+            z = BodyModel.transform_points(T, ground.links, ground.local)[:, 2] - ground.height - ground.floor_z
+            Jz = body.point_jacobian(theta, ground.links, ground.local, T)[:, 2, :]
+            out.append(Jz[int(np.argmin(z))][None] / ground.sigma)
+            out.append(np.where((z < 0.0)[:, None], Jz, 0.0) / ground.sigma)
+        out.extend(reg_rows)
+        return np.concatenate(out, axis=0)
+
+    if jacobian not in ("analytic", "numeric"):
+        raise ValueError(f"fit_pose: jacobian must be 'analytic' or 'numeric', got {jacobian!r}")
+    jac = jac_analytic if jacobian == "analytic" else jac_numeric
+
     if len(targets) == 0 and not reg_w and (link_goals is None or not len(link_goals.links)):
         return x0, 0.0, np.eye(body.n_dof)
     loss = ("cauchy", float(robust_scale)) if robust_scale > 0 else ("linear", 1.0)
     res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", max_nfev=max_nfev, x_scale=1.0,
-                        loss=loss[0], f_scale=loss[1])
+                        loss=loss[0], f_scale=loss[1], ftol=tolerance, xtol=tolerance, gtol=tolerance)
     J = res.jac
     cov = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True)
     return res.x, float(res.cost), cov
@@ -881,7 +918,8 @@ class _Estimator:
                 mirrored[m] = Blob3D(m, blob.mean, blob.cov, blob.cameras)
         targets, targets_m = self._blob_targets(obs), self._blob_targets(mirrored)
         _, cost_c, _ = fit_pose(
-            self.body, self.theta, targets, self.kin.rest, self.rest_sigma_dof, None, 1.0, f.max_nfev
+            self.body, self.theta, targets, self.kin.rest, self.rest_sigma_dof, None, 1.0, f.max_nfev,
+            tolerance=f.tolerance,
         )
         if self._flip_theta is None:
             yaw = _heading(exp_so3(self.theta[3:6])) + math.pi
@@ -896,6 +934,7 @@ class _Estimator:
                 None,
                 1.0,
                 f.max_nfev,
+                tolerance=f.tolerance,
             )
         self._flip_theta = theta_f
         self._cost_current += cost_c
@@ -954,6 +993,7 @@ class _Estimator:
             1.0,
             max_nfev=max(f.max_nfev, 60),
             ground=self._ground,
+            tolerance=f.tolerance,
         )
         return theta, cost
 
@@ -1173,6 +1213,7 @@ class BaselineEstimator(_Estimator):
             f.robust_scale,
             goals,
             self._ground,
+            tolerance=f.tolerance,
         )
         self._set_pose(theta, cov, self.poses, dt)
 
@@ -1399,6 +1440,7 @@ class KinematicEstimator(_Estimator):
             f.previous_sigma_rad,
             f.max_nfev,
             f.robust_scale,
+            tolerance=f.tolerance,
         )
         centres = self.body.blob_centres(theta)
         d2 = {}
