@@ -86,4 +86,3 @@ def test_bad_shapes_raise():
         exp_se3(np.zeros(5))
     with pytest.raises(ValueError):
         log_se3(np.eye(3))
-

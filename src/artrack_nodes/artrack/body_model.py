@@ -29,6 +29,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from .errors import BodyModelError
+from .lie import left_jacobian_so3
 from .types import Blob3D
 
 JOINT_TYPES = ("free", "ball", "hinge")
@@ -287,12 +288,9 @@ class BodyModel:
         Root translation: ``v = e_k``, ``w = 0``. A rotation about the link origin o with world angular
         velocity w: ``v = o × w``; ball and root rotation vectors: ``w = R_link J_r(θ_link)`` (the right
         Jacobian of SO(3), ``J_r(θ) = J_l(−θ)``, :func:`artrack.lie.left_jacobian_so3`), hinges: ``w = R_link axis``."""
-        from .lie import left_jacobian_so3  # lie imports errors only; kept local to keep this module light
-
         theta = np.asarray(theta, float).reshape(self.n_dof)
         T = self.forward_kinematics(theta) if world_from_link is None else world_from_link
         rv, rv_link, hinge, hinge_link, hinge_axis, trans = self._dof_kinds
-        v = np.zeros((self.n_dof, 3))
         w = np.zeros((self.n_dof, 3))
         if len(rv):
             W = T[rv_link, :3, :3] @ left_jacobian_so3(-theta[rv])  # columns: world axes of the 3 dofs
