@@ -302,22 +302,25 @@ class BodyModel:
         return v, w
 
     def point_jacobian(self, theta: np.ndarray, link_idx: np.ndarray, points: np.ndarray,
-                       world_from_link: np.ndarray | None = None) -> np.ndarray:
-        """(P, 3, n_dof): d(world position)/d(theta) of link-frame points (P, 3) on links link_idx (P,)."""
+                       world_from_link: np.ndarray | None = None,
+                       twists: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(P, 3, n_dof): d(world position)/d(theta) of link-frame points (P, 3) on links link_idx (P,);
+        ``twists``: :meth:`dof_twists` at theta if already computed."""
         T = self.forward_kinematics(theta) if world_from_link is None else world_from_link
         link_idx = np.asarray(link_idx, int)
         x = self.transform_points(T, link_idx, np.asarray(points, float).reshape(-1, 3))
-        v, w = self.dof_twists(theta, T)
+        v, w = self.dof_twists(theta, T) if twists is None else twists
         vel = v[None] + _cross(w[None], x[:, None, :])  # (P, n_dof, 3)
         return np.swapaxes(vel * self.dof_moves_link[link_idx][..., None], 1, 2)
 
     def link_twist_jacobian(self, theta: np.ndarray, link_idx: np.ndarray,
-                            world_from_link: np.ndarray | None = None) -> np.ndarray:
+                            world_from_link: np.ndarray | None = None,
+                            twists: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """(G, 6, n_dof): the links' motions in their own frames per unit dof, ``(v, w)`` as in
-        :mod:`artrack.lie` (``E(θ + dθ) ≈ E(θ) exp(J dθ)``)."""
+        :mod:`artrack.lie` (``E(θ + dθ) ≈ E(θ) exp(J dθ)``); ``twists`` as for :meth:`point_jacobian`."""
         T = self.forward_kinematics(theta) if world_from_link is None else world_from_link
         link_idx = np.asarray(link_idx, int)
-        v, w = self.dof_twists(theta, T)
+        v, w = self.dof_twists(theta, T) if twists is None else twists
         R, o = T[link_idx, :3, :3], T[link_idx, :3, 3]
         lin = v[None] + _cross(w[None], o[:, None, :])  # (G, n_dof, 3): velocity of each link origin
         out = np.concatenate([np.einsum("gji,gdj->gid", R, lin), np.einsum("gji,dj->gid", R, w)], axis=1)

@@ -492,10 +492,22 @@ class GroundContact:
         low = np.flatnonzero(z <= z.min() + tolerance_m)
         return cls(body.joint_links[low], body.joint_points[low], z[low], float(floor_z), float(sigma))
 
+    def heights(self, world_from_link: np.ndarray) -> np.ndarray:
+        """(..., F) each point's height above its rest height over the floor, for poses (..., L, 4, 4), m."""
+        return BodyModel.transform_points(world_from_link, self.links, self.local)[..., 2] - self.height - self.floor_z
+
     def residuals(self, world_from_link: np.ndarray) -> np.ndarray:
         """(..., F + 1) whitened residuals for poses (..., L, 4, 4)."""
-        z = BodyModel.transform_points(world_from_link, self.links, self.local)[..., 2] - self.height - self.floor_z
+        z = self.heights(world_from_link)
         return np.concatenate([z.min(axis=-1, keepdims=True), np.minimum(z, 0.0)], axis=-1) / self.sigma
+
+    def jacobian(self, body: BodyModel, theta: np.ndarray, world_from_link: np.ndarray,
+                 twists: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(F + 1, n_dof) Jacobian of :meth:`residuals` at theta (n_dof,) with poses world_from_link (L, 4, 4)
+        (``twists``: :meth:`BodyModel.dof_twists` there, if already computed)."""
+        z = self.heights(world_from_link)
+        dz = body.point_jacobian(theta, self.links, self.local, world_from_link, twists)[:, 2, :]
+        return np.vstack([dz[int(np.argmin(z))][None], np.where((z < 0.0)[:, None], dz, 0.0)]) / self.sigma
 
 
 def _whitener(info: np.ndarray) -> np.ndarray:
@@ -583,7 +595,9 @@ def fit_pose(
 
     def jac_analytic(theta):
         T = body.forward_kinematics(theta)
-        out = [np.einsum("pij,pjd->pid", U, body.point_jacobian(theta, links, local, T)).reshape(-1, body.n_dof)]
+        twists = body.dof_twists(theta, T)
+        J_points = body.point_jacobian(theta, links, local, T, twists)
+        out = [np.einsum("pij,pjd->pid", U, J_points).reshape(-1, body.n_dof)]
         if link_goals is not None and len(link_goals.links):
             g = link_goals
             xi = log_se3(g.inverse_reference @ T[g.links])
@@ -591,13 +605,10 @@ def fit_pose(
             ad[:, :3, :3] = ad[:, 3:, 3:] = skew(xi[:, 3:])
             ad[:, :3, 3:] = skew(xi[:, :3])
             dlog = np.eye(6) + 0.5 * ad
-            B = body.link_twist_jacobian(theta, g.links, T)
+            B = body.link_twist_jacobian(theta, g.links, T, twists)
             out.append(np.einsum("gij,gjk,gkd->gid", g.sqrt_information, dlog, B).reshape(-1, body.n_dof))
         if ground is not None:
-            z = BodyModel.transform_points(T, ground.links, ground.local)[:, 2] - ground.height - ground.floor_z
-            Jz = body.point_jacobian(theta, ground.links, ground.local, T)[:, 2, :]
-            out.append(Jz[int(np.argmin(z))][None] / ground.sigma)
-            out.append(np.where((z < 0.0)[:, None], Jz, 0.0) / ground.sigma)
+            out.append(ground.jacobian(body, theta, T, twists))
         out.extend(reg_rows)
         return np.concatenate(out, axis=0)
 
