@@ -118,6 +118,32 @@ def test_batch_equals_single(body):
     assert np.allclose(covs, np.swapaxes(covs, -1, -2))
 
 
+def test_forward_kinematics_equals_link_by_link_composition(body):
+    """The level-by-level batched tree walk equals composing each link on its parent, one at a
+    time, with scipy's rotations (hinges as rotation vectors angle * axis)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    theta = rng.uniform(np.maximum(body.lower, -3), np.minimum(body.upper, 3), size=(4, body.n_dof))
+    got = body.forward_kinematics(theta)
+    for k in range(len(theta)):
+        world = []
+        for i, lk in enumerate(body.links):
+            q = theta[k, lk.dof_slice]
+            if lk.joint == "free":
+                local = np.eye(4)
+                local[:3, :3] = Rotation.from_rotvec(q[3:]).as_matrix()
+                local[:3, 3] = q[:3]
+            else:
+                local = np.eye(4)
+                rv = q if lk.joint == "ball" else q[0] * np.asarray(lk.axis, float)
+                local[:3, :3] = Rotation.from_rotvec(rv).as_matrix()
+                local[:3, 3] = lk.offset
+            p = body.parent_index[i]
+            world.append(local if p < 0 else world[p] @ local)
+        assert np.allclose(got[k], np.array(world), atol=1e-12)
+
+
 def test_capsules_and_blobs(body):
     theta = body.rest_pose()
     p0, p1, radius, link, colour = body.capsules(theta)

@@ -166,10 +166,6 @@ class BodyModel:
         self.blob_labels = [links[i].name for i in self.blob_links]
         self._blob_centres = np.array([links[i].blob.centre for i in self.blob_links], float).reshape(-1, 3)
         self._blob_radii = np.array([links[i].blob.radii for i in self.blob_links], float).reshape(-1, 3)
-        # FK bookkeeping: all ball-joint rotvecs are converted in one scipy call.
-        self._ball_links = [i for i, lk in enumerate(links) if lk.joint == "ball"]
-        self._ball_cols = np.array([np.arange(links[i].dof_slice.start, links[i].dof_slice.stop)
-                                    for i in self._ball_links], int).reshape(-1, 3)
         self._offsets = np.array([lk.offset for lk in links], float)
         # Jacobian bookkeeping: the link each dof moves, and which links each link carries.
         self._dof_link = np.concatenate([np.full(lk.n_dof, i) for i, lk in enumerate(links)]).astype(int)
@@ -191,6 +187,23 @@ class BodyModel:
             np.concatenate([np.arange(lk.dof_slice.start, lk.dof_slice.start + 3)
                             for lk in links if lk.joint == "free"] or [np.zeros(0)]).astype(int),
         )
+        # Forward-kinematics bookkeeping: hinge generators K and K², the roots' translation dofs,
+        # and the links grouped by depth in the tree (parents before children).
+        hinge_axes = self._dof_kinds[4]
+        k = np.zeros((len(hinge_axes), 3, 3))
+        k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -hinge_axes[:, 2], hinge_axes[:, 1], -hinge_axes[:, 0]
+        k -= np.swapaxes(k, 1, 2)
+        self._hinge_k = (k, k @ k)
+        roots = [i for i in range(len(links)) if self.parent_index[i] < 0]
+        self._fk_roots = (np.array(roots, int),
+                          np.array([np.arange(links[i].dof_slice.start, links[i].dof_slice.start + 3)
+                                    for i in roots], int).reshape(-1, 3))
+        depth = np.zeros(len(links), int)
+        for i in range(len(links)):
+            if self.parent_index[i] >= 0:
+                depth[i] = depth[self.parent_index[i]] + 1
+        self._fk_levels = [(np.flatnonzero(depth == d), self.parent_index[depth == d])
+                           for d in range(1, int(depth.max(initial=0)) + 1)]
         # Flattened capsule view of all shapes.
         p0, p1, rad, li, col = [], [], [], [], []
         for i, lk in enumerate(links):
@@ -251,29 +264,26 @@ class BodyModel:
         flat = theta.reshape(-1, self.n_dof)
         n = flat.shape[0]
         n_links = len(self.links)
+        rv_cols, rv_links, hinge_cols, hinge_links, _, _ = self._dof_kinds
+        # Local rotations parent_from_link: all rotation vectors (ball joints and the root) in one
+        # scipy call, all hinges by Rodrigues' formula at once.
+        local = np.empty((n, n_links, 3, 3))
+        if len(rv_links):
+            mats = Rotation.from_rotvec(flat[:, rv_cols].reshape(-1, 3)).as_matrix()
+            local[:, rv_links] = mats.reshape(n, len(rv_links), 3, 3)
+        if len(hinge_links):
+            k, kk = self._hinge_k
+            ang = flat[:, hinge_cols][..., None, None]
+            local[:, hinge_links] = np.eye(3) + np.sin(ang) * k + (1.0 - np.cos(ang)) * kk
         rot = np.empty((n, n_links, 3, 3))
         pos = np.empty((n, n_links, 3))
-        # Local rotations parent_from_link.
-        local = np.empty((n, n_links, 3, 3))
-        if self._ball_links:
-            rv = flat[:, self._ball_cols]  # (n, nb, 3)
-            mats = Rotation.from_rotvec(rv.reshape(-1, 3)).as_matrix().reshape(n, len(self._ball_links), 3, 3)
-            local[:, self._ball_links] = mats
-        for i, lk in enumerate(self.links):
-            if lk.joint == "hinge":
-                local[:, i] = _axis_angle_matrix(lk.axis, flat[:, lk.dof_slice.start])
-            elif lk.joint == "free":
-                s = lk.dof_slice.start
-                local[:, i] = Rotation.from_rotvec(flat[:, s + 3:s + 6]).as_matrix()
-        for i, lk in enumerate(self.links):
-            p = self.parent_index[i]
-            if p < 0:
-                s = lk.dof_slice.start
-                rot[:, i] = local[:, i]
-                pos[:, i] = flat[:, s:s + 3]
-            else:
-                rot[:, i] = rot[:, p] @ local[:, i]
-                pos[:, i] = pos[:, p] + rot[:, p] @ self._offsets[i]
+        roots, root_cols = self._fk_roots
+        rot[:, roots] = local[:, roots]
+        pos[:, roots] = flat[:, root_cols]
+        # The tree level by level (all links of one depth at once).
+        for idx, par in self._fk_levels:
+            rot[:, idx] = rot[:, par] @ local[:, idx]
+            pos[:, idx] = pos[:, par] + (rot[:, par] @ self._offsets[idx][..., None])[..., 0]
         out = np.zeros((n, n_links, 4, 4))
         out[..., :3, :3] = rot
         out[..., :3, 3] = pos
@@ -392,14 +402,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
-def _axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rodrigues: (N, 3, 3) rotations by angle (N,) rad about the unit axis (3,)."""
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    s = np.sin(angle)[:, None, None]
-    c = np.cos(angle)[:, None, None]
-    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
 
 
 # ---------------------------------------------------------------------- loading
