@@ -77,83 +77,96 @@ def _gauss_newton(
     cams: Sequence[Camera],
     uvs: np.ndarray,
     infos: np.ndarray,
-    prior_mean: np.ndarray | None,
-    prior_info: np.ndarray | None,
+    prior_mean: np.ndarray,
+    prior_info: np.ndarray,
     iterations: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss–Newton on the weighted reprojection error (+ optional Gaussian prior).
+    """Gauss–Newton on the weighted reprojection error (+ optional Gaussian prior), for B
+    independent points at once (one projection call per camera and step, not per point).
 
-    X: (3,) start; uvs: (V, 2) px; infos: (V, 2, 2) px⁻². Returns X (3,) and the
-    information matrix H (3, 3) at X.
+    X: (B, 3) starts; cams: the C cameras; uvs: (B, C, 2) px; infos: (B, C, 2, 2) px⁻², zero
+    where camera c does not see point b; prior_mean (B, 3) m and prior_info (B, 3, 3) m⁻², zero
+    for no prior. Each point halves its own step until its cost does not increase and it stays
+    in front of its cameras, and stops on its own. Returns X (B, 3) and the information
+    matrices H (B, 3, 3) at X.
     """
+    X = np.array(X, dtype=float).reshape(-1, 3)
+    n = X.shape[0]
+    seen = np.any(infos != 0.0, axis=(2, 3))  # (B, C)
 
-    def linearise(Xc: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        H = np.zeros((3, 3))
-        g = np.zeros(3)
-        cost = 0.0
-        for cam, uv, W in zip(cams, uvs, infos, strict=True):
-            pred, J = cam.project_jacobian(Xc[None])
-            r = uv - pred[0]
-            JtW = J[0].T @ W
-            H += JtW @ J[0]
-            g += JtW @ r
-            cost += float(r @ W @ r)
-        if prior_info is not None:
-            dp = prior_mean - Xc
-            H += prior_info
-            g += prior_info @ dp
-            cost += float(dp @ prior_info @ dp)
+    def linearise(Xc: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        r = np.zeros((len(sel), len(cams), 2))
+        J = np.zeros((len(sel), len(cams), 2, 3))
+        for c, cam in enumerate(cams):
+            rows = np.flatnonzero(seen[sel, c])
+            if len(rows):
+                pred, Jc = cam.project_jacobian(Xc[rows])
+                r[rows, c] = uvs[sel[rows], c] - pred
+                J[rows, c] = Jc
+        W = infos[sel]
+        JtW = np.einsum("bcki,bckl->bcil", J, W)
+        dp = prior_mean[sel] - Xc
+        P = prior_info[sel]
+        H = np.einsum("bcil,bclj->bij", JtW, J) + P
+        g = np.einsum("bcil,bcl->bi", JtW, r) + np.einsum("bij,bj->bi", P, dp)
+        cost = np.einsum("bck,bckl,bcl->b", r, W, r) + np.einsum("bi,bij,bj->b", dp, P, dp)
         return H, g, cost
 
-    def in_front(Xc: np.ndarray) -> bool:
-        return all(float(c.R[2] @ Xc + c.t[2]) > 0.0 for c in cams)
+    def in_front(Xc: np.ndarray, sel: np.ndarray) -> np.ndarray:
+        depth = np.stack([Xc @ cam.R[2] + cam.t[2] for cam in cams], axis=1)
+        return np.all((depth > 0.0) | ~seen[sel], axis=1)
 
-    H, g, cost = linearise(X)
+    H, g, cost = linearise(X, np.arange(n))
+    active = np.ones(n, bool)
     for _ in range(iterations):
-        try:
-            step = np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
+        idx = np.flatnonzero(active)
+        if not len(idx):
             break
-        # Halve the step until the cost does not increase and the point stays in front.
-        lam = 1.0
-        accepted = False
+        step = np.zeros((n, 3))
+        for b in idx:  # 3x3 solves; a singular one stops only its own point
+            try:
+                step[b] = np.linalg.solve(H[b], g[b])
+            except np.linalg.LinAlgError:
+                active[b] = False
+        idx = np.flatnonzero(active)
+        lam = np.ones(n)
+        accepted = np.zeros(n, bool)
+        pending = idx
         for _ in range(8):
-            Xn = X + lam * step
-            if in_front(Xn):
-                Hn, gn, cn = linearise(Xn)
-                if cn <= cost * (1.0 + 1e-12) + 1e-12:
-                    X, H, g, cost = Xn, Hn, gn, cn
-                    accepted = True
-                    break
-            lam *= 0.5
-        if not accepted or float(np.linalg.norm(lam * step)) < 1e-10:
-            break
+            if not len(pending):
+                break
+            Xn = X[pending] + lam[pending, None] * step[pending]
+            front = in_front(Xn, pending)
+            if front.any():
+                sel = pending[front]
+                Hn, gn, cn = linearise(Xn[front], sel)
+                ok = cn <= cost[sel] * (1.0 + 1e-12) + 1e-12
+                good = sel[ok]
+                X[good], H[good], g[good], cost[good] = Xn[front][ok], Hn[ok], gn[ok], cn[ok]
+                accepted[good] = True
+            pending = pending[~accepted[pending]]
+            lam[pending] *= 0.5
+        moved = np.linalg.norm(lam[:, None] * step, axis=1)
+        active &= accepted & (moved >= 1e-10)
     return X, H
 
 
-def triangulate_blob(
-    observations: Sequence[tuple[Camera, Blob2D]],
-    prior: Blob3D | None = None,
-    iterations: int = 5,
-    fuse_prior: bool = False,
-) -> Blob3D | None:
-    """Covariance-weighted triangulation of one blob seen by several cameras.
+_Problem = tuple  # (label, cameras, uvs (k, 2), infos (k, 2, 2), X0 (3,), prior mean or None, prior info or None)
 
-    observations: (camera, 2-D blob) pairs, blob mean (2,) px and cov (2, 2) px² in
-    that camera's (distorted) image. prior: optional Blob3D (world, mean (3,) m, cov
-    (3, 3) m²), required when only one view is usable; fused also with several
-    views when ``fuse_prior``. iterations: Gauss–Newton steps (from the ray midpoint).
 
-    Returns a Blob3D in the world frame (mean (3,) m, cov (3, 3) m², ``cameras`` the
-    contributing camera names, label of the 2-D blobs or of the prior), or None when
-    there is no usable view, or a single view (or only parallel rays) and no prior.
-    Views whose ray midpoint lies behind them are dropped.
-    """
-    obs = [
-        (cam, b)
-        for cam, b in observations
-        if np.all(np.isfinite(np.asarray(b.mean, float))) and np.all(np.isfinite(np.asarray(b.cov, float)))
-    ]
+def _finite(b: Blob2D) -> bool:
+    return bool(np.all(np.isfinite(np.asarray(b.mean, float))) and np.all(np.isfinite(np.asarray(b.cov, float))))
+
+
+def _set_up(
+    obs: list[tuple[Camera, Blob2D]],
+    dirs: np.ndarray,
+    prior: Blob3D | None,
+    fuse_prior: bool,
+) -> _Problem | None:
+    """The Gauss–Newton problem of one blob (see :func:`triangulate_blob`): drop the views whose
+    ray midpoint lies behind them, start at the midpoint (one usable direction: on the ray,
+    nearest the prior). obs: finite observations; dirs: (k, 3) their viewing rays."""
     label = obs[0][1].label if obs else (prior.label if prior is not None else "")
     if not obs:
         return None
@@ -162,12 +175,7 @@ def triangulate_blob(
         prior_mean = np.asarray(prior.mean, dtype=float).reshape(3)
         pc = np.asarray(prior.cov, dtype=float).reshape(3, 3)
         prior_info = np.linalg.inv(0.5 * (pc + pc.T))
-
-    origins = np.empty((len(obs), 3))
-    dirs = np.empty((len(obs), 3))
-    for i, (cam, b) in enumerate(obs):
-        o, d = cam.rays(np.asarray(b.mean, float).reshape(1, 2))
-        origins[i], dirs[i] = o, d[0]
+    origins = np.array([cam.center for cam, _ in obs])
 
     X0 = None
     if len(obs) >= 2:
@@ -190,27 +198,69 @@ def triangulate_blob(
         # Start on the (first) ray, at the point nearest to the prior mean.
         s = max(float(dirs[0] @ (prior_mean - origins[0])), 1e-3)
         X0 = origins[0] + s * dirs[0]
-
-    cams = [c for c, _ in obs]
     uvs = np.array([np.asarray(b.mean, float).reshape(2) for _, b in obs])
     infos = np.array([_information_2d(b.cov) for _, b in obs])
-    X, H = _gauss_newton(
-        X0,
-        cams,
-        uvs,
-        infos,
-        prior_mean if use_prior else None,
-        prior_info if use_prior else None,
-        iterations,
-    )
-    try:
-        cov = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        return None
-    cov = 0.5 * (cov + cov.T)
-    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(cov))):
-        return None
-    return Blob3D(label, X, cov, tuple(c.name for c in cams))
+    return (label, [c for c, _ in obs], uvs, infos, X0,
+            prior_mean if use_prior else None, prior_info if use_prior else None)
+
+
+def _solve(problems: list[_Problem], iterations: int) -> list[Blob3D | None]:
+    """Run the problems' Gauss–Newton steps together (:func:`_gauss_newton`) and turn each
+    result into a Blob3D (None where the information matrix is singular or not finite)."""
+    cams: dict[str, Camera] = {}
+    for _, pcams, *_ in problems:
+        for c in pcams:
+            cams.setdefault(c.name, c)
+    col = {name: i for i, name in enumerate(cams)}
+    n, nc = len(problems), len(cams)
+    X0 = np.zeros((n, 3))
+    uvs = np.zeros((n, nc, 2))
+    infos = np.zeros((n, nc, 2, 2))
+    prior_mean = np.zeros((n, 3))
+    prior_info = np.zeros((n, 3, 3))
+    for b, (_, pcams, puv, pinfo, x0, pm, pi) in enumerate(problems):
+        cols = [col[c.name] for c in pcams]
+        uvs[b, cols], infos[b, cols], X0[b] = puv, pinfo, x0
+        if pm is not None:
+            prior_mean[b], prior_info[b] = pm, pi
+    X, H = _gauss_newton(X0, list(cams.values()), uvs, infos, prior_mean, prior_info, iterations)
+    out: list[Blob3D | None] = []
+    for b, (label, pcams, *_) in enumerate(problems):
+        try:
+            cov = np.linalg.inv(H[b])
+        except np.linalg.LinAlgError:
+            out.append(None)
+            continue
+        cov = 0.5 * (cov + cov.T)
+        if not (np.all(np.isfinite(X[b])) and np.all(np.isfinite(cov))):
+            out.append(None)
+            continue
+        out.append(Blob3D(label, X[b].copy(), cov, tuple(c.name for c in pcams)))
+    return out
+
+
+def triangulate_blob(
+    observations: Sequence[tuple[Camera, Blob2D]],
+    prior: Blob3D | None = None,
+    iterations: int = 5,
+    fuse_prior: bool = False,
+) -> Blob3D | None:
+    """Covariance-weighted triangulation of one blob seen by several cameras.
+
+    observations: (camera, 2-D blob) pairs, blob mean (2,) px and cov (2, 2) px² in
+    that camera's (distorted) image. prior: optional Blob3D (world, mean (3,) m, cov
+    (3, 3) m²), required when only one view is usable; fused also with several
+    views when ``fuse_prior``. iterations: Gauss–Newton steps (from the ray midpoint).
+
+    Returns a Blob3D in the world frame (mean (3,) m, cov (3, 3) m², ``cameras`` the
+    contributing camera names, label of the 2-D blobs or of the prior), or None when
+    there is no usable view, or a single view (or only parallel rays) and no prior.
+    Views whose ray midpoint lies behind them are dropped.
+    """
+    obs = [(cam, b) for cam, b in observations if _finite(b)]
+    dirs = np.array([cam.rays(np.asarray(b.mean, float).reshape(1, 2))[1][0] for cam, b in obs]).reshape(-1, 3)
+    problem = _set_up(obs, dirs, prior, fuse_prior)
+    return None if problem is None else _solve([problem], iterations)[0]
 
 
 def triangulate_blobs(
@@ -220,7 +270,8 @@ def triangulate_blobs(
     iterations: int = 5,
     fuse_prior: bool = False,
 ) -> dict[str, Blob3D]:
-    """Triangulate every label seen in the cameras.
+    """Triangulate every label seen in the cameras (as :func:`triangulate_blob` per label, with
+    one undistortion per camera and the labels' Gauss–Newton steps run together).
 
     blobs_by_camera: {camera name: 2-D blobs of that camera}; cameras: {name: Camera}
     (or a list); priors: {label: predicted Blob3D} used for single-view labels (see
@@ -239,11 +290,21 @@ def triangulate_blobs(
             old = views.get(cam_name)
             if old is None or b.pixel_count > old.pixel_count:
                 views[cam_name] = b
-    out: dict[str, Blob3D] = {}
+    # Viewing rays: one undistortion per camera for all its (finite) blobs.
+    ray: dict[tuple[str, str], np.ndarray] = {}
+    for name in cams:
+        keys = [(label, name) for label, views in by_label.items() if name in views and _finite(views[name])]
+        if keys:
+            uv = np.array([np.asarray(by_label[label][name].mean, float).reshape(2) for label, _ in keys])
+            dirs = cams[name].rays(uv)[1]
+            ray.update(zip(keys, dirs, strict=True))
+    problems: list[_Problem] = []
     for label, views in by_label.items():
-        prior = priors.get(label) if priors else None
-        obs = [(cams[name], b) for name, b in views.items()]
-        blob = triangulate_blob(obs, prior, iterations=iterations, fuse_prior=fuse_prior)
-        if blob is not None:
-            out[label] = blob
-    return out
+        obs = [(cams[name], b) for name, b in views.items() if (label, name) in ray]
+        dirs = np.array([ray[(label, c.name)] for c, _ in obs]).reshape(-1, 3)
+        problem = _set_up(obs, dirs, priors.get(label) if priors else None, fuse_prior)
+        if problem is not None:
+            problems.append(problem)
+    if not problems:
+        return {}
+    return {blob.label: blob for blob in _solve(problems, iterations) if blob is not None}
