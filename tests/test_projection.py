@@ -199,3 +199,54 @@ def test_body_estimate_with_body_model_gives_occlusion_and_link_confidence():
     assert torso_prior.confidence == pytest.approx(confidence_from_covariance(np.eye(3) * 1e-4))
     # Without the body there are no occluders.
     assert project_priors(est, [cam])["cam01"][0].visibility == VISIBLE
+
+
+def _sight_line_clearance(C, X, caps, margin=0.05):
+    """Brute-force reference for ``occluded``: min over capsules of (distance from the sight
+    line C -> X shortened by ``margin``, sampled at 4000 points, to the capsule axis) - radius."""
+    v = X - C
+    end = X - v / np.linalg.norm(v) * margin
+    pts = C + np.linspace(0.0, 1.0, 4000)[:, None] * (end - C)
+    best = np.inf
+    for c in caps:
+        d = c.p1 - c.p0
+        t = np.clip((pts - c.p0) @ d / max(d @ d, 1e-12), 0.0, 1.0)
+        best = min(best, float(np.min(np.linalg.norm(pts - (c.p0 + t[:, None] * d), axis=1))) - c.radius)
+    return best
+
+
+def test_all_blobs_of_a_camera_at_once_equal_one_blob_at_a_time():
+    """project_priors projects and occlusion-tests all blobs of a camera in one go; every prior
+    must equal the per-blob definition: project_gaussian for mean and covariance, and occluded
+    exactly when the sight line passes within a radius of another label's capsule axis (a
+    sampled brute-force reference; random blobs, capsules and a camera inside the scene,
+    so that every visibility code occurs)."""
+    rng = np.random.default_rng(5)
+    cams = ring_cameras()
+    cams.append(Camera.look_at("inside", 1280, 720, K, [0.3, 0.0, 1.0], [2.0, 0.0, 1.0]))
+    labels = ["head", "torso", "left_hand", "right_hand", "left_foot", "right_foot"]
+    seen = set()
+    for _ in range(40):
+        blobs = []
+        for label in labels:
+            A = rng.normal(size=(3, 3)) * 0.1
+            blobs.append(Blob3D(label, rng.normal([0.0, 0.0, 1.0], 0.8), A @ A.T))
+        caps = [Capsule(str(rng.choice(labels)), rng.normal([0.0, 0.0, 1.0], 0.5),
+                        rng.normal([0.0, 0.0, 1.0], 0.5), float(rng.uniform(0.02, 0.2))) for _ in range(10)]
+        caps.append(Capsule("torso", np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), 0.1))  # a sphere
+        out = project_priors(blobs, cams, 7, occluders=caps)
+        for cam in cams:
+            for blob, prior in zip(blobs, out[cam.name], strict=True):
+                seen.add(prior.visibility)
+                if prior.visibility == BEHIND_CAMERA:
+                    assert cam.project(blob.mean)[1][0] <= 1e-3
+                    continue
+                mean2, cov2, _ = project_gaussian(cam, blob.mean, blob.cov)
+                np.testing.assert_allclose(prior.mean, mean2, atol=1e-9)
+                np.testing.assert_allclose(prior.cov, cov2, rtol=1e-9, atol=1e-9)
+                if prior.visibility != OFF_IMAGE:
+                    gap = _sight_line_clearance(cam.center, blob.mean, [c for c in caps if c.label != blob.label])
+                    if abs(gap) > 1e-3:  # not grazing: the sampled reference is decisive
+                        assert (prior.visibility == OCCLUDED) == (gap < 0.0)
+                    assert prior.confidence == confidence_from_covariance(blob.cov)
+    assert seen == {VISIBLE, OCCLUDED, OFF_IMAGE, BEHIND_CAMERA}

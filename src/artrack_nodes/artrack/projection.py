@@ -100,39 +100,38 @@ def confidence_from_covariance(cov: np.ndarray, scale: float = DEFAULT_CONFIDENC
 
 
 def _segment_distances(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray) -> np.ndarray:
-    """Distances between one segment a0-a1 (3,) and M segments b0-b1 (M, 3) -> (M,).
+    """Distances between segments a0-a1 and b0-b1, all (..., 3) and broadcast together -> (...).
 
     Closest points of two segments (Ericson, Real-Time Collision Detection, 5.1.9),
-    vectorised over the second segment.
+    vectorised (e.g. N lines of sight (N, 1, 3) against M capsule axes (1, M, 3) -> (N, M)).
     """
-    d1 = a1 - a0  # (3,)
-    d2 = b1 - b0  # (M, 3)
-    r = a0 - b0  # (M, 3)
+    a0, a1, b0, b1 = np.broadcast_arrays(*(np.asarray(x, float) for x in (a0, a1, b0, b1)))
+    d1 = a1 - a0
+    d2 = b1 - b0
+    r = a0 - b0
     eps = 1e-12
-    a = float(d1 @ d1)
-    e = np.einsum("ij,ij->i", d2, d2)
-    f = np.einsum("ij,ij->i", d2, r)
-    c = r @ d1
-    b = d2 @ d1
-    e_ok = e > eps
-    e_safe = np.where(e_ok, e, 1.0)
-    if a <= eps:  # first segment is a point
-        s = np.zeros_like(e)
-        t = np.where(e_ok, np.clip(f / e_safe, 0.0, 1.0), 0.0)
-    else:
-        denom = a * e - b * b
-        ok = denom > eps * a * np.maximum(e, eps)  # not parallel
-        s = np.where(ok, (b * f - c * e) / np.where(ok, denom, 1.0), 0.0)
-        s = np.clip(s, 0.0, 1.0)
-        t = np.where(e_ok, (b * s + f) / e_safe, 0.0)
-        s = np.where(t < 0.0, np.clip(-c / a, 0.0, 1.0), s)
-        s = np.where(t > 1.0, np.clip((b - c) / a, 0.0, 1.0), s)
-        t = np.clip(t, 0.0, 1.0)
-        # degenerate second segment (a point): t = 0, s from projecting it on the first
-        s = np.where(e_ok, s, np.clip(-c / a, 0.0, 1.0))
-    p = a0 + s[:, None] * d1
-    q = b0 + t[:, None] * d2
-    return np.linalg.norm(p - q, axis=1)
+
+    def dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.einsum("...i,...i->...", x, y)
+
+    a, e, f, c, b = dot(d1, d1), dot(d2, d2), dot(d2, r), dot(r, d1), dot(d2, d1)
+    a_ok, e_ok = a > eps, e > eps
+    a_safe, e_safe = np.where(a_ok, a, 1.0), np.where(e_ok, e, 1.0)
+    denom = a * e - b * b
+    ok = denom > eps * a * np.maximum(e, eps)  # not parallel
+    s = np.clip(np.where(ok, (b * f - c * e) / np.where(ok, denom, 1.0), 0.0), 0.0, 1.0)
+    t = np.where(e_ok, (b * s + f) / e_safe, 0.0)
+    s = np.where(t < 0.0, np.clip(-c / a_safe, 0.0, 1.0), s)
+    s = np.where(t > 1.0, np.clip((b - c) / a_safe, 0.0, 1.0), s)
+    t = np.clip(t, 0.0, 1.0)
+    # degenerate second segment (a point): t = 0, s from projecting it on the first
+    s = np.where(e_ok, s, np.clip(-c / a_safe, 0.0, 1.0))
+    # degenerate first segment (a point): s = 0, t from projecting it on the second
+    t = np.where(a_ok, t, np.where(e_ok, np.clip(f / e_safe, 0.0, 1.0), 0.0))
+    s = np.where(a_ok, s, 0.0)
+    p = a0 + s[..., None] * d1
+    q = b0 + t[..., None] * d2
+    return np.linalg.norm(p - q, axis=-1)
 
 
 def _as_capsules(occluders: Iterable) -> list[Capsule]:
@@ -157,20 +156,27 @@ def occluded(
     from camera_center to ``point`` (world, m), shortened by ``occlusion_margin`` m at the
     point's end (so that a neighbouring link touching the blob near its joint does not
     count). Capsules beyond the point never occlude it."""
-    others = [c for c in capsules if c.label != label]
-    if not others:
-        return False
-    C = np.asarray(camera_center, float)
-    X = np.asarray(point, float)
-    v = X - C
-    dist = float(np.linalg.norm(v))
-    if dist <= occlusion_margin:
-        return False
-    end = X - v / dist * occlusion_margin
-    p0 = np.array([c.p0 for c in others], dtype=float).reshape(-1, 3)
-    p1 = np.array([c.p1 for c in others], dtype=float).reshape(-1, 3)
-    radii = np.array([c.radius for c in others], dtype=float)
-    return bool(np.any(_segment_distances(C, end, p0, p1) < radii))
+    return bool(_occluded_many(camera_center, np.asarray(point, float).reshape(1, 3), [label],
+                               capsules, occlusion_margin)[0])
+
+
+def _occluded_many(camera_center: np.ndarray, points: np.ndarray, labels: Sequence[str],
+                   capsules: Sequence[Capsule], occlusion_margin: float) -> np.ndarray:
+    """:func:`occluded` for N points (N, 3) with their labels at once -> (N,) bool."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    if not capsules or not len(points):
+        return np.zeros(len(points), bool)
+    C = np.asarray(camera_center, float).reshape(3)
+    v = points - C
+    dist = np.linalg.norm(v, axis=1)
+    near = dist <= occlusion_margin
+    end = points - v / np.where(near, 1.0, dist)[:, None] * occlusion_margin
+    p0 = np.array([c.p0 for c in capsules], dtype=float).reshape(-1, 3)
+    p1 = np.array([c.p1 for c in capsules], dtype=float).reshape(-1, 3)
+    radii = np.array([c.radius for c in capsules], dtype=float)
+    other = np.array([[c.label != lab for c in capsules] for lab in labels], bool).reshape(len(points), -1)
+    hit = (_segment_distances(C, end[:, None], p0[None], p1[None]) < radii) & other
+    return hit.any(axis=1) & ~near
 
 
 def occluders_from_body(body, links: Iterable[LinkEstimate]) -> list[Capsule]:
@@ -249,30 +255,35 @@ def project_priors(
     cams = list(cameras.values()) if isinstance(cameras, Mapping) else list(cameras)
     capsules = _as_capsules(occluders) if occluders is not None else []
 
+    blobs3d = list(blobs3d)
+    labels = [blob.label for blob in blobs3d]
+    means3 = np.array([np.asarray(b.mean, dtype=float).reshape(3) for b in blobs3d]).reshape(-1, 3)
+    covs3 = np.array([np.asarray(b.cov, dtype=float).reshape(3, 3) for b in blobs3d]).reshape(-1, 3, 3)
+    confs = [confidence_from_covariance(link_cov.get(b.label, covs3[k]), confidence_scale)
+             for k, b in enumerate(blobs3d)]
     out: dict[str, list[Prior2D]] = {}
     for cam in cams:
         m = 0.05 * max(cam.width, cam.height) if margin is None else float(margin)
         r2_max = _fov_radius2(cam)
-        priors = []
-        for blob in blobs3d:
-            mean3 = np.asarray(blob.mean, dtype=float).reshape(3)
-            cov3 = np.asarray(blob.cov, dtype=float).reshape(3, 3)
-            conf = confidence_from_covariance(link_cov.get(blob.label, cov3), confidence_scale)
-            x_cam = cam.R @ mean3 + cam.t
-            if x_cam[2] <= min_depth:
-                nan2 = np.full(2, np.nan)
-                priors.append(
-                    Prior2D(blob.label, nan2, np.full((2, 2), np.nan), 0.0, BEHIND_CAMERA, stamp_ns)
-                )
-                continue
-            mean2, cov2, _ = project_gaussian(cam, mean3, cov3)
-            r2 = (x_cam[0] ** 2 + x_cam[1] ** 2) / x_cam[2] ** 2
-            if r2 > r2_max or not cam.in_image(mean2, margin=m)[0]:
-                priors.append(Prior2D(blob.label, mean2, cov2, 0.0, OFF_IMAGE, stamp_ns))
-                continue
-            vis = VISIBLE
-            if capsules and occluded(cam.center, mean3, blob.label, capsules, occlusion_margin):
-                vis = OCCLUDED
-            priors.append(Prior2D(blob.label, mean2, cov2, conf, vis, stamp_ns))
+        # all blobs of this camera at once: projection with the first-order covariance, the
+        # field-of-view and image tests, and the lines of sight against the capsules
+        x_cam = means3 @ cam.R.T + cam.t
+        front = np.flatnonzero(x_cam[:, 2] > min_depth)
+        uv, J = cam.project_jacobian(means3[front])
+        cov2 = J @ covs3[front] @ np.swapaxes(J, 1, 2)
+        cov2 = 0.5 * (cov2 + np.swapaxes(cov2, 1, 2))
+        r2 = (x_cam[front, 0] ** 2 + x_cam[front, 1] ** 2) / x_cam[front, 2] ** 2
+        inside = (r2 <= r2_max) & cam.in_image(uv, margin=m)
+        occ = np.zeros(len(front), bool)
+        occ[inside] = _occluded_many(cam.center, means3[front[inside]], [labels[k] for k in front[inside]],
+                                     capsules, occlusion_margin)
+        priors = [Prior2D(lab, np.full(2, np.nan), np.full((2, 2), np.nan), 0.0, BEHIND_CAMERA, stamp_ns)
+                  for lab in labels]
+        for j, k in enumerate(front):
+            if not inside[j]:
+                priors[k] = Prior2D(labels[k], uv[j].copy(), cov2[j].copy(), 0.0, OFF_IMAGE, stamp_ns)
+            else:
+                priors[k] = Prior2D(labels[k], uv[j].copy(), cov2[j].copy(), confs[k], OCCLUDED if occ[j] else VISIBLE,
+                                    stamp_ns)
         out[cam.name] = priors
     return out
