@@ -84,11 +84,17 @@ def project_gaussian(
     """
     mean = np.asarray(mean, dtype=float).reshape(3)
     cov = np.asarray(cov, dtype=float).reshape(3, 3)
-    uv, J = camera.project_jacobian(mean[None])
+    uv, cov2 = _project_gaussians(camera, mean[None], cov[None])
     depth = float(camera.R[2] @ mean + camera.t[2])
-    J = J[0]
-    cov2 = J @ cov @ J.T
-    return uv[0], 0.5 * (cov2 + cov2.T), depth
+    return uv[0], cov2[0], depth
+
+
+def _project_gaussians(camera: Camera, means: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`project_gaussian` for N Gaussians (means (N, 3), covs (N, 3, 3)) in one projection
+    call: (uv (N, 2) px, cov2 (N, 2, 2) px²)."""
+    uv, J = camera.project_jacobian(means)
+    cov2 = J @ covs @ np.swapaxes(J, 1, 2)
+    return uv, 0.5 * (cov2 + np.swapaxes(cov2, 1, 2))
 
 
 def confidence_from_covariance(cov: np.ndarray, scale: float = DEFAULT_CONFIDENCE_SCALE) -> float:
@@ -269,9 +275,7 @@ def project_priors(
         # field-of-view and image tests, and the lines of sight against the capsules
         x_cam = means3 @ cam.R.T + cam.t
         front = np.flatnonzero(x_cam[:, 2] > min_depth)
-        uv, J = cam.project_jacobian(means3[front])
-        cov2 = J @ covs3[front] @ np.swapaxes(J, 1, 2)
-        cov2 = 0.5 * (cov2 + np.swapaxes(cov2, 1, 2))
+        uv, cov2 = _project_gaussians(cam, means3[front], covs3[front])
         r2 = (x_cam[front, 0] ** 2 + x_cam[front, 1] ** 2) / x_cam[front, 2] ** 2
         inside = (r2 <= r2_max) & cam.in_image(uv, margin=m)
         occ = np.zeros(len(front), bool)

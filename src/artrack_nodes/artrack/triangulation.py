@@ -28,6 +28,7 @@ of the order of the blob's 3-D extent divided by sqrt(number of views).
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -151,7 +152,16 @@ def _gauss_newton(
     return X, H
 
 
-_Problem = tuple  # (label, cameras, uvs (k, 2), infos (k, 2, 2), X0 (3,), prior mean or None, prior info or None)
+class _Problem(NamedTuple):
+    """One label's triangulation, ready for :func:`_gauss_newton`."""
+
+    label: str
+    cameras: list[Camera]
+    uvs: np.ndarray  # (k, 2) px, the blob means in those cameras
+    infos: np.ndarray  # (k, 2, 2) px⁻²
+    start: np.ndarray  # (3,) m
+    prior_mean: np.ndarray | None  # (3,) m, when the prior is fused
+    prior_info: np.ndarray | None  # (3, 3) m⁻²
 
 
 def _finite(b: Blob2D) -> bool:
@@ -200,16 +210,16 @@ def _set_up(
         X0 = origins[0] + s * dirs[0]
     uvs = np.array([np.asarray(b.mean, float).reshape(2) for _, b in obs])
     infos = np.array([_information_2d(b.cov) for _, b in obs])
-    return (label, [c for c, _ in obs], uvs, infos, X0,
-            prior_mean if use_prior else None, prior_info if use_prior else None)
+    return _Problem(label, [c for c, _ in obs], uvs, infos, X0,
+                    prior_mean if use_prior else None, prior_info if use_prior else None)
 
 
 def _solve(problems: list[_Problem], iterations: int) -> list[Blob3D | None]:
     """Run the problems' Gauss–Newton steps together (:func:`_gauss_newton`) and turn each
     result into a Blob3D (None where the information matrix is singular or not finite)."""
     cams: dict[str, Camera] = {}
-    for _, pcams, *_ in problems:
-        for c in pcams:
+    for problem in problems:
+        for c in problem.cameras:
             cams.setdefault(c.name, c)
     col = {name: i for i, name in enumerate(cams)}
     n, nc = len(problems), len(cams)
@@ -218,14 +228,14 @@ def _solve(problems: list[_Problem], iterations: int) -> list[Blob3D | None]:
     infos = np.zeros((n, nc, 2, 2))
     prior_mean = np.zeros((n, 3))
     prior_info = np.zeros((n, 3, 3))
-    for b, (_, pcams, puv, pinfo, x0, pm, pi) in enumerate(problems):
-        cols = [col[c.name] for c in pcams]
-        uvs[b, cols], infos[b, cols], X0[b] = puv, pinfo, x0
-        if pm is not None:
-            prior_mean[b], prior_info[b] = pm, pi
+    for b, pb in enumerate(problems):
+        cols = [col[c.name] for c in pb.cameras]
+        uvs[b, cols], infos[b, cols], X0[b] = pb.uvs, pb.infos, pb.start
+        if pb.prior_mean is not None:
+            prior_mean[b], prior_info[b] = pb.prior_mean, pb.prior_info
     X, H = _gauss_newton(X0, list(cams.values()), uvs, infos, prior_mean, prior_info, iterations)
     out: list[Blob3D | None] = []
-    for b, (label, pcams, *_) in enumerate(problems):
+    for b, pb in enumerate(problems):
         try:
             cov = np.linalg.inv(H[b])
         except np.linalg.LinAlgError:
@@ -235,7 +245,7 @@ def _solve(problems: list[_Problem], iterations: int) -> list[Blob3D | None]:
         if not (np.all(np.isfinite(X[b])) and np.all(np.isfinite(cov))):
             out.append(None)
             continue
-        out.append(Blob3D(label, X[b].copy(), cov, tuple(c.name for c in pcams)))
+        out.append(Blob3D(pb.label, X[b].copy(), cov, tuple(c.name for c in pb.cameras)))
     return out
 
 
