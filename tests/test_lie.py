@@ -7,7 +7,7 @@ import pytest
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from artrack.lie import GENERATORS, adjoint, exp_se3, hat, inverse_se3, log_se3, make_se3, skew, vee
+from artrack.lie import GENERATORS, adjoint, cross, exp_se3, hat, inverse_se3, log_se3, make_se3, skew, vee
 
 
 def random_poses(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -86,3 +86,10 @@ def test_bad_shapes_raise():
         exp_se3(np.zeros(5))
     with pytest.raises(ValueError):
         log_se3(np.eye(3))
+
+
+def test_cross_equals_numpy_and_broadcasts():
+    rng = np.random.default_rng(4)
+    a, b = rng.normal(size=(5, 1, 3)), rng.normal(size=(1, 7, 3))
+    np.testing.assert_allclose(cross(a, b), np.cross(a, b), atol=1e-15)
+    np.testing.assert_allclose(skew(a[:, 0]) @ b[0, 0], np.cross(a[:, 0], b[0, 0]), atol=1e-15)

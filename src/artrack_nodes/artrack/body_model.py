@@ -29,7 +29,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from .errors import BodyModelError
-from .lie import left_jacobian_so3
+from .lie import cross, left_jacobian_so3
 from .types import Blob3D
 
 JOINT_TYPES = ("free", "ball", "hinge")
@@ -307,7 +307,7 @@ class BodyModel:
             w[rv] = np.swapaxes(W, 1, 2)
         if len(hinge):
             w[hinge] = np.einsum("hij,hj->hi", T[hinge_link, :3, :3], hinge_axis)
-        v = _cross(T[self._dof_link, :3, 3], w)
+        v = cross(T[self._dof_link, :3, 3], w)
         v[trans] = np.eye(3)[np.arange(len(trans)) % 3]
         return v, w
 
@@ -320,7 +320,7 @@ class BodyModel:
         link_idx = np.asarray(link_idx, int)
         x = self.transform_points(T, link_idx, np.asarray(points, float).reshape(-1, 3))
         v, w = self.dof_twists(theta, T) if twists is None else twists
-        vel = v[None] + _cross(w[None], x[:, None, :])  # (P, n_dof, 3)
+        vel = v[None] + cross(w[None], x[:, None, :])  # (P, n_dof, 3)
         return np.swapaxes(vel * self.dof_moves_link[link_idx][..., None], 1, 2)
 
     def link_twist_jacobian(self, theta: np.ndarray, link_idx: np.ndarray,
@@ -332,7 +332,7 @@ class BodyModel:
         link_idx = np.asarray(link_idx, int)
         v, w = self.dof_twists(theta, T) if twists is None else twists
         R, o = T[link_idx, :3, :3], T[link_idx, :3, 3]
-        lin = v[None] + _cross(w[None], o[:, None, :])  # (G, n_dof, 3): velocity of each link origin
+        lin = v[None] + cross(w[None], o[:, None, :])  # (G, n_dof, 3): velocity of each link origin
         out = np.concatenate([np.einsum("gji,gdj->gid", R, lin), np.einsum("gji,dj->gid", R, w)], axis=1)
         return out * self.dof_moves_link[link_idx][:, None, :]
 
@@ -395,13 +395,6 @@ class BodyModel:
         p0 = self.transform_points(T, self._cap_link, self._cap_p0)
         p1 = self.transform_points(T, self._cap_link, self._cap_p1)
         return p0, p1, self._cap_radius.copy(), self._cap_link.copy(), list(self._cap_colour)
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``np.cross`` over the last axis (broadcast), without its per-call overhead on small arrays."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 # ---------------------------------------------------------------------- loading

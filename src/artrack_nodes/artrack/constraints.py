@@ -60,32 +60,9 @@ import scipy.sparse.linalg as spla
 from scipy.spatial.transform import Rotation
 
 from .errors import InputError
+from .lie import cross, skew
 
 # ---------------------------------------------------------------------------- SO(3) helpers
-
-
-def skew(w: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrix, ``skew(a) @ b == a × b``."""
-    w = np.asarray(w, dtype=float)
-    out = np.zeros((*w.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -w[..., 2], w[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = w[..., 2], -w[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -w[..., 1], w[..., 0]
-    return out
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a × b for (..., 3) arrays (faster than np.cross for tiny inputs)."""
-    a = np.asarray(a, dtype=float)
-    b = np.asarray(b, dtype=float)
-    return np.stack(
-        [
-            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
-        ],
-        axis=-1,
-    )
 
 
 def exp_so3(w: np.ndarray) -> np.ndarray:
@@ -222,16 +199,16 @@ class HingeAxis(Constraint):
         self.axis_b = np.asarray(self.axis_b, dtype=float).reshape(3)
         self.axis_b = self.axis_b / np.linalg.norm(self.axis_b)
         helper = np.eye(3)[int(np.argmin(np.abs(u)))]
-        e1 = _cross(u, helper)
+        e1 = cross(u, helper)
         e1 /= np.linalg.norm(e1)
-        self.perp_a = np.stack([e1, _cross(u, e1)])  # (2, 3) in link a's frame
+        self.perp_a = np.stack([e1, cross(u, e1)])  # (2, 3) in link a's frame
         self.links = tuple(k for k in (self.link_a, self.link_b) if k >= 0)
 
     def _terms(self, R):
         u = R[self.link_a] @ self.axis_a if self.link_a >= 0 else self.axis_a
         w = R[self.link_b] @ self.axis_b if self.link_b >= 0 else self.axis_b
         E = self.perp_a @ R[self.link_a].T if self.link_a >= 0 else self.perp_a
-        v = _cross(u, w)
+        v = cross(u, w)
         s, co = float(np.linalg.norm(v)), float(u @ w)
         theta = float(np.arctan2(s, co))
         g = theta / s if s > 1e-9 else (1.0 if co > 0 else np.pi / 1e-9)
@@ -261,7 +238,7 @@ class HingeAxis(Constraint):
                 Dphi = g * Dv
             out[link] = out.get(link, np.zeros((2, 3))) + E @ Dphi
         if self.link_a >= 0:
-            out[self.link_a] = out[self.link_a] + _cross(E, phi[None])  # δe_k · φ = δω_a · (e_k × φ)
+            out[self.link_a] = out[self.link_a] + cross(E, phi[None])  # δe_k · φ = δω_a · (e_k × φ)
         return [(link, np.hstack([np.zeros((2, 3)), block])) for link, block in out.items()]
 
 
@@ -378,7 +355,7 @@ class HingeAxes(Constraint):
         u = np.einsum("nij,nj->ni", Ra, self.u_a)
         w = np.einsum("nij,nj->ni", Rb, self.u_b)
         E = self.perp @ np.swapaxes(Ra, 1, 2)  # (n, 2, 3) world
-        v = _cross(u, w)
+        v = cross(u, w)
         s = np.linalg.norm(v, axis=1)
         co = np.einsum("ni,ni->n", u, w)
         theta = np.arctan2(s, co)
@@ -411,7 +388,7 @@ class HingeAxes(Constraint):
             Dg = (Dth - g[:, None] * Ds) / sv[:, None]
             Dphi = g[:, None, None] * Dv + np.where(big[:, None, None], v[:, :, None] * Dg[:, None, :], 0.0)
             blocks.append(E @ Dphi)
-        blocks[0] = blocks[0] + _cross(E, phi[:, None, :])
+        blocks[0] = blocks[0] + cross(E, phi[:, None, :])
         full = [np.concatenate([np.zeros((n, 2, 3)), b], axis=2) for b in blocks]
         return self._rows, self._cols, np.concatenate([full[0].ravel(), full[1].ravel()])
 
@@ -444,7 +421,7 @@ class PointDistance(Constraint):
             if link < 0:
                 continue
             r = R[link] @ local
-            blocks.append((link, sign * np.concatenate([n, _cross(r, n)])[None]))
+            blocks.append((link, sign * np.concatenate([n, cross(r, n)])[None]))
         return blocks
 
 
@@ -549,7 +526,7 @@ def soft_energy_terms(
         r = R[i] @ np.asarray(term.point, dtype=float)
         f = np.asarray(term.force, dtype=float)
         Q[i, :3] += f
-        Q[i, 3:] += _cross(r, f)
+        Q[i, 3:] += cross(r, f)
         energy -= float(f @ (p[i] + r))
     return Q, K, energy
 
@@ -741,8 +718,8 @@ class ConstraintSolver:
         c = np.einsum("nij,nj->ni", R, self.com)
         w = nu[:, 3:]
         Ic = R @ self.inertias @ np.swapaxes(R, 1, 2)
-        cent = self.masses[:, None] * _cross(w, _cross(w, c))
-        gyro = _cross(w, np.einsum("nij,nj->ni", Ic, w)) + _cross(c, cent)
+        cent = self.masses[:, None] * cross(w, cross(w, c))
+        gyro = cross(w, np.einsum("nij,nj->ni", Ic, w)) + cross(c, cent)
         return np.concatenate([cent, gyro], axis=1)
 
     def residual(self, p: np.ndarray, R: np.ndarray) -> np.ndarray:

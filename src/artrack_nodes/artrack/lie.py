@@ -30,6 +30,7 @@ __all__ = [
     "GENERATORS",
     "GeometryError",
     "adjoint",
+    "cross",
     "exp_se3",
     "hat",
     "inverse_se3",
@@ -58,6 +59,16 @@ def skew(w: np.ndarray) -> np.ndarray:
     out[..., 2, 0] = -w[..., 1]
     out[..., 2, 1] = w[..., 0]
     return out
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a × b`` over the last axis of (..., 3) arrays (broadcast), without ``np.cross``'s per-call
+    overhead on small arrays."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def left_jacobian_so3(r: np.ndarray) -> np.ndarray:

@@ -110,9 +110,6 @@ from .constraints import (
     log_so3,
     soft_energy_terms,
 )
-from .constraints import (
-    skew as _skew,
-)
 from .errors import InputError
 from .kalman import ConstantAccelerationKF
 from .lie import inverse_se3, log_se3, skew
@@ -1609,7 +1606,7 @@ class DynamicEstimator(KinematicEstimator):
         self.link_cov = self._link_covariance(self.p, self.R, terms)
         # Blob centre covariance from the link covariance (position + lever × rotation).
         lever = np.einsum("bij,bj->bi", self.R[self.kin.blob_links], self.kin.blob_local)
-        A = np.concatenate([np.broadcast_to(np.eye(3), (lever.shape[0], 3, 3)), -_skew(lever)], axis=2)
+        A = np.concatenate([np.broadcast_to(np.eye(3), (lever.shape[0], 3, 3)), -skew(lever)], axis=2)
         C = self.link_cov[self.kin.blob_links]
         self.blob_state_cov = A @ C @ np.swapaxes(A, 1, 2)
 
