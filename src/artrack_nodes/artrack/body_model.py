@@ -29,7 +29,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from .errors import BodyModelError
-from .lie import cross, left_jacobian_so3
+from .lie import cross, left_jacobian_so3, skew
 from .types import Blob3D
 
 JOINT_TYPES = ("free", "ball", "hinge")
@@ -190,9 +190,7 @@ class BodyModel:
         # Forward-kinematics bookkeeping: hinge generators K and K², the roots' translation dofs,
         # and the links grouped by depth in the tree (parents before children).
         hinge_axes = self._dof_kinds[4]
-        k = np.zeros((len(hinge_axes), 3, 3))
-        k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -hinge_axes[:, 2], hinge_axes[:, 1], -hinge_axes[:, 0]
-        k -= np.swapaxes(k, 1, 2)
+        k = skew(hinge_axes)
         self._hinge_k = (k, k @ k)
         roots = [i for i in range(len(links)) if self.parent_index[i] < 0]
         self._fk_roots = (np.array(roots, int),
