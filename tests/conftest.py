@@ -79,3 +79,19 @@ def spin_until(executor, predicate, timeout_s: float, step_s: float = 0.05) -> b
         if predicate():
             return True
     return False
+
+
+def call_service(executor, client, request, timeout_s: float = 30.0, attempts: int = 3):
+    """Call an idempotent service over DDS and return its response (None if none came in ``timeout_s``).
+
+    Fast DDS can drop a response sent before the server has matched the client's response reader,
+    even after ``service_is_ready()`` (ros2/rmw_fastrtps#842; likelier on a loaded machine). The
+    request is therefore sent again, up to ``attempts`` times within the same total ``timeout_s``.
+    Only for requests whose repetition changes nothing (e.g. setting parameters to given values)."""
+    for _ in range(attempts):
+        future = client.call_async(request)
+        executor.spin_until_future_complete(future, timeout_sec=timeout_s / attempts)
+        if future.done():
+            return future.result()
+        client.remove_pending_request(future)
+    return None

@@ -59,7 +59,7 @@ def test_out_of_range_parameter_stops_the_node_with_one_line(env):
 def test_feedback_switched_off_at_run_time_over_dds(env, probe, tmp_path):
     """A parameter client (rcl_interfaces services, as `ros2 param set`) turns blob_features'
     feedback off while it runs; out-of-range and start-up-only values are refused."""
-    from conftest import spin_until
+    from conftest import call_service, spin_until
     from rcl_interfaces.srv import GetParameters, SetParameters
     from rclpy.parameter import Parameter
 
@@ -75,10 +75,9 @@ def test_feedback_switched_off_at_run_time_over_dds(env, probe, tmp_path):
             log.read_text()
 
         def call(client, request):
-            future = client.call_async(request)
-            executor.spin_until_future_complete(future, timeout_sec=20)
-            assert future.done(), "parameter service did not answer"
-            return future.result()
+            response = call_service(executor, client, request)
+            assert response is not None, "parameter service did not answer"
+            return response
 
         results = call(setter, SetParameters.Request(parameters=[
             Parameter(name, value=value).to_parameter_msg() for name, value in

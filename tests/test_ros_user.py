@@ -121,6 +121,7 @@ def _child_pid(parent_pid: int, node_name: str) -> int | None:
 
 def _set_params(node, executor, target: str, params: list) -> list:
     """rcl_interfaces/SetParameters on ``target`` over DDS; the per-parameter results."""
+    from conftest import call_service
     from rcl_interfaces.srv import SetParameters
 
     client = node.create_client(SetParameters, f"/{target}/set_parameters")
@@ -128,10 +129,9 @@ def _set_params(node, executor, target: str, params: list) -> list:
     while not client.service_is_ready() and time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.1)
     assert client.service_is_ready(), f"no parameter service on /{target}"
-    future = client.call_async(SetParameters.Request(parameters=[p.to_parameter_msg() for p in params]))
-    executor.spin_until_future_complete(future, timeout_sec=30)
-    assert future.done(), "parameter service did not answer"
-    return list(future.result().results)
+    response = call_service(executor, client, SetParameters.Request(parameters=[p.to_parameter_msg() for p in params]))
+    assert response is not None, "parameter service did not answer"
+    return list(response.results)
 
 
 @pytest.fixture(scope="module")
