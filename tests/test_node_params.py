@@ -75,7 +75,7 @@ def test_feedback_switched_off_at_run_time_over_dds(env, probe, tmp_path):
             log.read_text()
 
         def call(client, request):
-            response = call_service(executor, client, request)
+            response = call_service(executor, client, request, timeout_s=20)
             assert response is not None, "parameter service did not answer"
             return response
 
