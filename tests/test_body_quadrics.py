@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from artrack.body_model import Shape, load_body_model
-from artrack.body_quadrics import body_quadrics, sample_body, shape_quadrics
+from artrack.body_model import Shape, body_model_from_dict, load_body_model
+from artrack.body_quadrics import body_quadrics, sample_body, shape_quadrics, visible_surface_gaussian
 from artrack.motion import pose_at
 from artrack.quadrics import quadric_value
 from artrack.synth import Renderer, default_rig
@@ -155,3 +155,84 @@ def test_batched_sampling_equals_per_quadric_sampling(size):
                 np.testing.assert_allclose(s.points_cam, P, rtol=0, atol=1e-9)
             n_samples += len(uv)
     assert n_samples > 1000
+
+
+# ---------------------------------------------------------------------- blob features from the shapes
+def _one_link_body(shapes: list[dict], blob: dict | None = None) -> dict:
+    """A body of one free link (origin 1 m above the floor) with these shapes."""
+    return {"links": [{"name": "ball", "parent": None, "joint": "free", "offset": [0.0, 0.0, 1.0],
+                       "limits": [[-9, 9]] * 6, "end": [0.0, 0.0, 0.1], "colour": "skin", "shapes": shapes,
+                       **({"blob": blob} if blob else {})}],
+            "joints": [{"name": "ball", "link": "ball"}]}
+
+
+def test_visible_surface_gaussian_of_a_lone_sphere_is_analytic():
+    # a sphere of radius r seen from a level ring: each surface element counts with its projected
+    # area averaged over the ring, |n_horizontal| / pi, so the mean is the centre and the
+    # per-axis sigma is r sqrt(3/8) across and r / 2 up (integrals over z of (1 - z^2)^(3/2)
+    # and z^2 (1 - z^2)^(1/2) against (1 - z^2)^(1/2)); the ring is 4 m away, not at infinity
+    r = 0.1
+    body = body_model_from_dict(_one_link_body([{"type": "sphere", "centre": [0.0, 0.0, 0.05], "radius": r}]))
+    mean, cov = visible_surface_gaussian(body, 0, "skin")
+    assert np.allclose(mean, [0.0, 0.0, 0.05], atol=1e-3)
+    sigma = np.sqrt(np.diag(cov))
+    assert np.allclose(sigma, r * np.array([np.sqrt(3 / 8), np.sqrt(3 / 8), 0.5]), rtol=0.02)
+
+
+def test_visible_surface_gaussian_drops_what_another_shape_hides():
+    # a skin sphere with a hair sphere over its top half (as hair over a face): only the uncovered
+    # lower, front part counts, so the skin mean moves down and forward, away from the hair;
+    # the same body with the hair removed keeps the centre
+    skin = {"type": "sphere", "centre": [0.0, 0.0, 0.0], "radius": 0.1}
+    hair = {"type": "sphere", "centre": [-0.03, 0.0, 0.06], "radius": 0.1, "colour": "hair"}
+    body = body_model_from_dict(_one_link_body([skin, hair]))
+    mean, _ = visible_surface_gaussian(body, 0, "skin")
+    assert mean[2] < -0.01 and mean[0] > 0.01 and abs(mean[1]) < 1e-3
+    hair_mean, _ = visible_surface_gaussian(body, 0, "hair")
+    assert hair_mean[2] > 0.05 and hair_mean[0] < -0.01
+    bare = body_model_from_dict(_one_link_body([skin]))
+    assert np.allclose(visible_surface_gaussian(bare, 0, "skin")[0], 0.0, atol=1e-3)
+    with pytest.raises(ValueError, match="no shape of colour 'shirt'"):
+        visible_surface_gaussian(body, 0, "shirt")
+
+
+def test_blob_auto_takes_the_visible_surface_gaussian():
+    data = _one_link_body([{"type": "sphere", "centre": [0.0, 0.0, 0.0], "radius": 0.1},
+                           {"type": "sphere", "centre": [-0.03, 0.0, 0.06], "radius": 0.1, "colour": "hair"}],
+                          blob={"colour": "skin", "centre": "auto", "radii": "auto"})
+    body = body_model_from_dict(data)
+    mean, cov = visible_surface_gaussian(body, 0, "skin")
+    blob = body.links[0].blob
+    assert blob.derived == ("centre", "radii")
+    assert np.allclose(blob.centre, mean) and np.allclose(blob.radii, np.sqrt(np.diag(cov)))
+    data["links"][0]["blob"]["radii"] = [0.05, 0.05, 0.05]  # only the centre derived
+    part = body_model_from_dict(data).links[0].blob
+    assert part.derived == ("centre",) and np.allclose(part.centre, mean) and np.allclose(part.radii, 0.05)
+
+
+def test_default_blobs_sit_where_the_rendered_pixels_are(scene):
+    # the synthetic renderer's true label images: the pixels of each blob link, in its colour,
+    # have their centroid's row near the projected 'auto' blob centre's (median over views and
+    # poses). The hand-set centres at the middle of each shape were 3-4 px (4-6 cm)
+    # above the thigh and shin pixels. The head is left out: the renderer paints whole ellipses
+    # in depth order (the face over the hair from the front, the hair over the face from behind),
+    # not the 3-D visible surface, so its head pixels sit ~3 px below any one 3-D centre.
+    body, cams, renderer, _ = scene
+    pal = renderer.palette(0)
+    names = list(pal)
+    off: dict[str, list[float]] = {lab: [] for lab in body.blob_labels}
+    for t in (0.5, 2.0, 3.5, 5.0):
+        theta = pose_at("default", t, body)
+        images, labels = renderer.render(theta, (), 0.0, frame_index=0, labels=True)
+        for cam, img, lab in zip(cams, images, labels, strict=True):
+            nearest = np.argmin([np.linalg.norm(img.astype(float) - pal[n], axis=2) for n in names], axis=0)
+            for k, name in zip(body.blob_links, body.blob_labels, strict=True):
+                ys, xs = np.nonzero((lab == k + 1) & (nearest == names.index(body.links[k].blob.colour)))
+                if len(xs) < 20:
+                    continue
+                centre = body.blob_centres(theta)[body.blob_labels.index(name)]
+                uv = cam.project(centre)[0][0]
+                off[name].append(float(ys.mean() - uv[1]))
+    rows = {name: float(np.median(off[name])) for name in ("torso", "l_hand", "r_hand", "l_thigh", "r_thigh",
+                                                            "l_shin", "r_shin")}
+    assert all(abs(v) < 1.5 for v in rows.values()), rows

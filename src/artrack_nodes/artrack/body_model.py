@@ -19,6 +19,7 @@ with a Python loop over the links only, so 500 particles cost one call.
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +38,7 @@ N_DOF = {"free": 6, "ball": 3, "hinge": 1}
 SHAPE_TYPES = ("capsule", "ellipsoid", "sphere")
 DEFAULT_COLOUR_CLASSES = ("skin", "shirt", "trousers", "shoes", "hair")
 CONFIG_NAME = "body_model.yaml"
+AUTO = "auto"  # a blob centre / radii derived from the link's shapes
 
 
 @dataclass
@@ -77,11 +79,19 @@ class Shape:
 @dataclass
 class BlobFeature:
     """A coloured blob carried by a link: colour class, centre (3,) in the link
-    frame (m) and radii (3,) 1-sigma extents along the link axes (m)."""
+    frame (m) and radii (3,) 1-sigma extents along the link axes (m).
+
+    In the YAML either may be ``auto``: the mean and the per-axis standard deviation of the
+    link's visible surface in the blob's colour, seen from cameras around the body at rest
+    (ALGORITHMS.md §1: a blob is the Gaussian of its pixels; a hand-set centre in the middle of
+    a shape misses what hides part of it, e.g. hair over the face, the pelvis over a thigh)."""
 
     colour: str
     centre: np.ndarray
     radii: np.ndarray
+    #: the fields given as 'auto' in the YAML, derived from the link's shapes
+    #: (:func:`artrack.body_quadrics.visible_surface_gaussian`)
+    derived: tuple[str, ...] = ()
 
 
 @dataclass
@@ -470,7 +480,34 @@ def body_model_from_dict(data: Any, source: str = "<dict>") -> BodyModel:
             raise BodyModelError(f"{source}: joint '{jn}' names unknown link '{rj['link']}'")
         pt = _vec(rj.get("point", [0.0, 0.0, 0.0]), 3, source, f"joint '{jn}'", "point")
         joints.append((jn, seen[rj["link"]], pt))
+    body = BodyModel(links, joints, colours, name=str(data.get("name", "body")), source=source)
+    if not any(lk.blob is not None and lk.blob.derived for lk in links):
+        return body
+    key = json.dumps(data, sort_keys=True, default=str)
+    gaussians = _DERIVED_BLOBS.get(key)
+    if gaussians is None:
+        from .body_quadrics import visible_surface_gaussian  # that module builds on this one
+
+        gaussians = {}
+        for k, lk in enumerate(links):
+            if lk.blob is not None and lk.blob.derived:
+                try:
+                    gaussians[k] = visible_surface_gaussian(body, k, lk.blob.colour)
+                except ValueError as exc:
+                    raise BodyModelError(f"{source}: link '{lk.name}' field 'blob': 'auto' needs a visible "
+                                         f"shape of the blob's colour ({exc})") from exc
+        _DERIVED_BLOBS[key] = gaussians
+    for k, (mean, cov) in gaussians.items():
+        blob = links[k].blob
+        if "centre" in blob.derived:
+            blob.centre = mean.copy()
+        if "radii" in blob.derived:
+            blob.radii = np.sqrt(np.diag(cov))
     return BodyModel(links, joints, colours, name=str(data.get("name", "body")), source=source)
+
+
+#: derived blob Gaussians per body-model document (JSON text): ~0.3 s to derive, loaded often
+_DERIVED_BLOBS: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
 
 
 def _vec(value: Any, n: int, source: str, where: str, fld: str) -> np.ndarray:
@@ -581,10 +618,14 @@ def _parse_link(raw: Any, k: int, seen: dict[str, int], colours: tuple[str, ...]
         rb = raw["blob"]
         if not isinstance(rb, dict):
             raise BodyModelError(f"{source}: {where} field 'blob' must be a mapping")
+        # 'auto': derived from the link's shapes once the whole body is known (body_model_from_dict)
+        derived = tuple(f for f in ("centre", "radii") if rb.get(f) == AUTO)
         blob = BlobFeature(
             colour=_colour(rb.get("colour", colour), colours, source, where, "blob.colour"),
-            centre=_vec(rb.get("centre", [0.0, 0.0, 0.0]), 3, source, where, "blob.centre"),
-            radii=_vec(rb.get("radii"), 3, source, where, "blob.radii"),
+            centre=np.zeros(3) if "centre" in derived
+            else _vec(rb.get("centre", [0.0, 0.0, 0.0]), 3, source, where, "blob.centre"),
+            radii=np.ones(3) if "radii" in derived else _vec(rb.get("radii"), 3, source, where, "blob.radii"),
+            derived=derived,
         )
         if np.any(blob.radii <= 0):
             raise BodyModelError(f"{source}: {where} field 'blob.radii' must be positive")

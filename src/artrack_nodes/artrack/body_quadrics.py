@@ -16,6 +16,10 @@ by any other primitive of the body (same or other link) with one batched ray / q
 (the same test as :func:`artrack.quadrics.visibility_mask`, vectorised over all samples and
 all occluders at once). Images are pinhole (``K`` only): undistort the image first, or map
 the 3-D tangent points through the full camera model.
+
+:func:`visible_surface_gaussian` gives a link's blob feature (ALGORITHMS.md §1, "blob classes as
+Gaussians") from the same primitives: the mean and covariance of the part of the link's surface, in
+the blob's colour, that cameras around the body see (hidden surface removed with the same ray test).
 """
 
 from __future__ import annotations
@@ -29,7 +33,8 @@ from artrack.body_model import BodyModel, Shape
 from artrack.lie import inverse_se3
 from artrack.quadrics import ClippedQuadric, cylinder, ellipsoid, sample_contours, slab, sphere, transform_quadric
 
-__all__ = ["BodyQuadric", "BodySamples", "body_quadrics", "sample_body", "sample_body_views", "shape_quadrics"]
+__all__ = ["BodyQuadric", "BodySamples", "body_quadrics", "sample_body", "sample_body_views", "shape_quadrics",
+           "visible_surface_gaussian"]
 
 
 @dataclass(frozen=True)
@@ -215,3 +220,102 @@ def sample_body_views(
             u, nr, p, pr = u[keep], nr[keep], p[keep], pr[keep]
         out.append(BodySamples(u, nr, p, link_of[pr], pr))
     return out
+
+
+# ---------------------------------------------------------------------- blob features from the shapes
+def _fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere (equal area each, 4 pi / n)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    r = np.sqrt(1.0 - z * z)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def _surface_samples(part: str, shape: Shape, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points (N, 3), outward unit normals (N, 3) and area weights (N,) m^2 on one part of a shape
+    (link frame); the parts of :func:`shape_quadrics`."""
+    u = _fibonacci_sphere(n)
+    if part in ("ellipsoid", "sphere"):
+        if shape.kind == "ellipsoid":
+            centre, radii = np.asarray(shape.centre, float), np.asarray(shape.radii, float)
+        else:  # a sphere, or a zero-length capsule
+            centre = np.asarray(shape.centre if shape.kind == "sphere" else shape.p0, float)
+            radii = np.full(3, float(shape.radius))
+        g = u / radii  # the normal of x = c + radii * u is along radii^-1 u; dA = |det| |radii^-1 u| dA_u
+        gn = np.linalg.norm(g, axis=1)
+        return centre + u * radii, g / gn[:, None], np.prod(radii) * gn * (4.0 * np.pi / n)
+    p0, p1, r = np.asarray(shape.p0, float), np.asarray(shape.p1, float), float(shape.radius)
+    T = _frame_along(p0, p1)
+    R, length = T[:3, :3], float(np.linalg.norm(p1 - p0))
+    if part == "cylinder":
+        n_phi = 48
+        n_len = max(2, n // n_phi)
+        phi = (np.arange(n_phi) + 0.5) * (2.0 * np.pi / n_phi)
+        t = (np.arange(n_len) + 0.5) * (length / n_len)
+        phi, t = (a.ravel() for a in np.meshgrid(phi, t))
+        nrm = np.column_stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)]) @ R.T
+        pts = p0 + t[:, None] * R[:, 2] + r * nrm
+        return pts, nrm, np.full(len(pts), 2.0 * np.pi * r * length / len(pts))
+    outer = u[u[:, 2] <= 0.0] if part == "cap0" else u[u[:, 2] > 0.0]  # capsule frame: z along p0 -> p1
+    nrm = outer @ R.T
+    end = p0 if part == "cap0" else p1
+    return end + r * nrm, nrm, np.full(len(outer), 4.0 * np.pi * r * r / n)
+
+
+def visible_surface_gaussian(body: BodyModel, link: int, colour: str, *, n_views: int = 16,
+                             distance_m: float = 4.0, samples: int = 1200) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (3,) and covariance (3, 3), link frame, m, of the visible surface of ``colour`` on link
+    ``link``: the Gaussian its 2-D blob measures (ALGORITHMS.md §1: a blob is the mean and covariance
+    of its pixels).
+
+    The body stands in its rest pose; ``n_views`` cameras on a horizontal ring of radius
+    ``distance_m`` around the root, at the height of the link's shapes, look at it. Every shape
+    of the link in ``colour`` is sampled (``samples`` points per part, area-weighted); a sample
+    counts in a view when it faces the camera and no other primitive of the body hides it (the
+    ray test of :func:`sample_body`), weighted by its projected area (area x cos of the viewing
+    angle). So the parts covered by other shapes (hair over the face, the pelvis over the top of
+    a thigh, the forearm over the wrist) and the surfaces seen end-on do not count, as in the
+    images. BodyModelError-free: ValueError when the link has no visible surface of that colour.
+    """
+    lk = body.links[link]
+    quadrics = body_quadrics(body)
+    prim = {(bq.link, bq.shape, bq.part): k for k, bq in enumerate(quadrics)}
+    pts, nrm, area, own = [], [], [], []
+    for si, sh in enumerate(lk.shapes):
+        if sh.colour != colour:
+            continue
+        for part, _ in shape_quadrics(sh):
+            p, n_, a = _surface_samples(part, sh, samples)
+            pts.append(p)
+            nrm.append(n_)
+            area.append(a)
+            own.append(np.full(len(p), prim[(link, si, part)]))
+    if not pts:
+        raise ValueError(f"link '{lk.name}' has no shape of colour '{colour}'")
+    p_link, n_link, area, own = (np.concatenate(x) for x in (pts, nrm, area, own))
+    world_from_link = body.forward_kinematics(body.rest_pose())
+    R, t = world_from_link[link, :3, :3], world_from_link[link, :3, 3]
+    p_world, n_world = p_link @ R.T + t, n_link @ R.T
+    centre = np.array([*world_from_link[0, :2, 3], p_world[:, 2].mean()])
+    weight = np.zeros(len(p_link))
+    for phi in np.arange(n_views) * (2.0 * np.pi / n_views):
+        forward = -np.array([np.cos(phi), np.sin(phi), 0.0])  # camera z: towards the body, level
+        down = np.array([0.0, 0.0, -1.0])  # camera y
+        cam_from_world = np.eye(4)
+        cam_from_world[:3, :3] = np.vstack([np.cross(down, forward), down, forward])
+        position = centre - distance_m * forward
+        cam_from_world[:3, 3] = -cam_from_world[:3, :3] @ position
+        to_camera = position - p_world
+        cos = np.einsum("ij,ij->i", n_world, to_camera) / np.linalg.norm(to_camera, axis=1)
+        front = cos > 0.0
+        p_cam = p_world[front] @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        Q_cam, clip_cam = _prims_in_cameras(quadrics, (cam_from_world @ world_from_link)[None])
+        seen = ~_occluded(p_cam, own[front], Q_cam[0], clip_cam[0])
+        idx = np.flatnonzero(front)[seen]
+        weight[idx] += area[idx] * cos[idx]
+    if weight.sum() <= 0.0:
+        raise ValueError(f"link '{lk.name}': no surface of colour '{colour}' is visible")
+    mean = weight @ p_link / weight.sum()
+    d = p_link - mean
+    return mean, (weight[:, None] * d).T @ d / weight.sum()
