@@ -10,7 +10,9 @@ live graph) on the synthetic scenes of ``bench/closed_loop.py`` (cached bags, 4 
    (``--skeleton``, default the Kalman filters + virtual-work solver, ``kinematic``) — and the
    same two estimators fed *perfect* 2-D blobs (the true blob Gaussians projected, occluded
    ones left out, 1 px noise: "oracle blobs"), which separates the error of the 2-D blob
-   tracker from that of the 3-D estimator;
+   tracker from that of the 3-D estimator; and fed the blob statistics of the renderer's *true
+   label images* (each blob's pixels: its link's pixels nearest its colour class, "oracle
+   labels"): what a perfect pixel labelling would give, body-model blob centres included;
 2. the paper's table: RMS of the hand to its best-fit line / of its angle to the smoothed
    angle, skeleton / raw tracker (the claim: ratio <= 0.7);
 3. self-occlusion: worst hand error with feedback on and off (claim: <= 150 mm with);
@@ -55,8 +57,11 @@ from artrack.motion import pose_at  # noqa: E402
 from artrack.pipeline import load_pipeline_config  # noqa: E402
 from artrack.projection import project_priors  # noqa: E402
 from artrack.skeleton import make_estimator  # noqa: E402
-from artrack.synth import START_STAMP_NS, SceneConfig  # noqa: E402
-from artrack.types import VISIBLE, Blob2D  # noqa: E402
+from artrack.synth import START_STAMP_NS, Renderer, SceneConfig, frame_stamp_ns  # noqa: E402
+from artrack.types import (
+    VISIBLE,  # noqa: E402
+    Blob2D,  # noqa: E402
+)
 
 STAGES = [  # (timing key, column) in pipeline order
     ("blobs_2d.background", "bg"), ("blobs_2d.classification", "classify"), ("blobs_2d.statistics", "stats"),
@@ -75,6 +80,46 @@ def oracle_blobs(body, cameras, theta, stamp_ns: int, rng, sigma_px: float) -> d
     return {cam: [Blob2D(p.label, p.mean + sigma_px * rng.standard_normal(2), p.cov, pixel_count=100)
                   for p in priors if p.visibility == VISIBLE]
             for cam, priors in projected.items()}
+
+
+def label_oracle_run(name: str, args, estimator: str, body) -> dict:
+    """The 3-D estimator alone on the blob statistics (pixel mean and covariance, as
+    ``BlobTracker2D`` computes them) of the renderer's true label images of scene ``name``: a
+    blob's pixels are its link's pixels whose colour is nearest the blob's colour class in the
+    person's palette (the head's skin without its hair). No background, no feedback."""
+    cfg = SceneConfig(n_cameras=4, width=args.width, height=args.height, duration_s=args.duration,
+                      seed=args.seed, **cl.SCENES[name])
+    scene = read_scene(cl.scene_bag(name, 4, args, body))
+    renderer = Renderer(body, scene.cameras, cfg.seed)
+    palette = renderer.palette(0)
+    colours = list(palette)
+    est = make_estimator(estimator, body, scene.cameras, load_pipeline_config(estimator=estimator).skeleton)
+    stamps, out, tru = [], [], []
+    t0 = time.perf_counter()
+    for i in range(cfg.n_frames):
+        t = i / cfg.fps - cfg.empty_s
+        if t < 0:  # the room is still empty
+            continue
+        theta = pose_at(cfg.motion_name, t, body)
+        images, labels = renderer.render(theta, (), cfg.noise_sigma, frame_index=i, labels=True)
+        blobs = {}
+        for cam, img, lab in zip(scene.cameras, images, labels, strict=True):
+            nearest = np.argmin([np.linalg.norm(img.astype(float) - palette[c], axis=2) for c in colours], axis=0)
+            blobs[cam.name] = []
+            for k, label in zip(body.blob_links, body.blob_labels, strict=True):
+                ys, xs = np.nonzero((lab == k + 1) & (nearest == colours.index(body.links[k].blob.colour)))
+                if len(xs) >= 10:
+                    pts = np.column_stack([xs, ys]).astype(float)
+                    d = pts - pts.mean(axis=0)
+                    blobs[cam.name].append(Blob2D(label, pts.mean(axis=0), d.T @ d / len(pts), pixel_count=len(xs)))
+        e = est.update(frame_stamp_ns(i, cfg.fps), blobs)
+        if np.all(np.isfinite(e.joints)):
+            stamps.append(frame_stamp_ns(i, cfg.fps))
+            out.append(e.joints)
+            tru.append(body.joint_positions(theta))
+    r = cl.score(name, body, stamps, out, tru, cfg.n_frames)
+    r["fps"] = cfg.n_frames / (time.perf_counter() - t0)
+    return r
 
 
 def oracle_run(path: Path, name: str, estimator: str, body, sigma_px: float = 1.0) -> dict:
@@ -124,7 +169,8 @@ def main() -> int:
     print(f"{'estimator':<11}{'blobs':<9}{'MPJPE mm':>9}{'head+hands RMS mm':>19}{'limbs mm':>9}{'tracked %':>10}")
     for e in estimators:
         for src, r in (("tracked", cl.run(bag("default"), "default", e, True, body)),
-                       ("oracle", oracle_run(bag("default"), "default", e, body))):
+                       ("oracle", oracle_run(bag("default"), "default", e, body)),
+                       ("labels", label_oracle_run("default", args, e, body))):
             res[("default", e, src)] = r
             print(f"{e:<11}{src:<9}{fmt(r['mpjpe_mm'])}{fmt(r['head_hands_rms_mm'], '19.1f')}"
                   f"{fmt(r['limbs_mm'])}{100 * r['tracked']:10.0f}", flush=True)
@@ -187,6 +233,7 @@ def main() -> int:
         "fps_640x480": fps.get((sk, 640, 480), float("nan")),
         "raw_mpjpe_mm": res[("default", raw, "tracked")]["mpjpe_mm"],
         "oracle_blobs_mpjpe_mm": res[("default", sk, "oracle")]["mpjpe_mm"],
+        "oracle_labels_mpjpe_mm": res[("default", sk, "labels")]["mpjpe_mm"],
         "distractor_jump_frames_feedback": res[("distractor", sk, True)]["jump_frames"],
         "mpjpe_mm_2_cameras": res[("cameras", sk, 2)]["mpjpe_mm"],
         "tracked_share_1_camera": res[("cameras", sk, 1)]["tracked"],
