@@ -276,7 +276,7 @@ def visible_surface_gaussian(body: BodyModel, link: int, colour: str, *, n_views
     ray test of :func:`sample_body`), weighted by its projected area (area x cos of the viewing
     angle). So the parts covered by other shapes (hair over the face, the pelvis over the top of
     a thigh, the forearm over the wrist) and the surfaces seen end-on do not count, as in the
-    images. BodyModelError-free: ValueError when the link has no visible surface of that colour.
+    images. Raises ValueError when the link has no visible surface of that colour.
     """
     lk = body.links[link]
     quadrics = body_quadrics(body)
