@@ -91,8 +91,6 @@ def label_oracle_run(name: str, args, estimator: str, body) -> dict:
                       seed=args.seed, **cl.SCENES[name])
     scene = read_scene(cl.scene_bag(name, 4, args, body))
     renderer = Renderer(body, scene.cameras, cfg.seed)
-    palette = renderer.palette(0)
-    colours = list(palette)
     est = make_estimator(estimator, body, scene.cameras, load_pipeline_config(estimator=estimator).skeleton)
     stamps, out, tru = [], [], []
     t0 = time.perf_counter()
@@ -104,10 +102,8 @@ def label_oracle_run(name: str, args, estimator: str, body) -> dict:
         images, labels = renderer.render(theta, (), cfg.noise_sigma, frame_index=i, labels=True)
         blobs = {}
         for cam, img, lab in zip(scene.cameras, images, labels, strict=True):
-            nearest = np.argmin([np.linalg.norm(img.astype(float) - palette[c], axis=2) for c in colours], axis=0)
             blobs[cam.name] = []
-            for k, label in zip(body.blob_links, body.blob_labels, strict=True):
-                ys, xs = np.nonzero((lab == k + 1) & (nearest == colours.index(body.links[k].blob.colour)))
+            for label, (xs, ys) in renderer.blob_pixels(img, lab).items():
                 if len(xs) >= 10:
                     pts = np.column_stack([xs, ys]).astype(float)
                     d = pts - pts.mean(axis=0)

@@ -218,16 +218,12 @@ def test_default_blobs_sit_where_the_rendered_pixels_are(scene):
     # in depth order (the face over the hair from the front, the hair over the face from behind),
     # not the 3-D visible surface, so its head pixels sit ~3 px below any one 3-D centre.
     body, cams, renderer, _ = scene
-    pal = renderer.palette(0)
-    names = list(pal)
     off: dict[str, list[float]] = {lab: [] for lab in body.blob_labels}
     for t in (0.5, 2.0, 3.5, 5.0):
         theta = pose_at("default", t, body)
         images, labels = renderer.render(theta, (), 0.0, frame_index=0, labels=True)
         for cam, img, lab in zip(cams, images, labels, strict=True):
-            nearest = np.argmin([np.linalg.norm(img.astype(float) - pal[n], axis=2) for n in names], axis=0)
-            for k, name in zip(body.blob_links, body.blob_labels, strict=True):
-                ys, xs = np.nonzero((lab == k + 1) & (nearest == names.index(body.links[k].blob.colour)))
+            for name, (xs, ys) in renderer.blob_pixels(img, lab).items():
                 if len(xs) < 20:
                     continue
                 centre = body.blob_centres(theta)[body.blob_labels.index(name)]

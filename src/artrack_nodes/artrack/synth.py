@@ -275,6 +275,21 @@ class Renderer:
             self._palettes[person] = person_palette(self.seed, person)
         return self._palettes[person]
 
+    def blob_pixels(self, image: np.ndarray, label_image: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """The true pixels of each blob of the target in one rendered view: blob label ->
+        (xs, ys) of its link's pixels in ``label_image`` (from ``render(..., labels=True)``)
+        whose colour in ``image`` is nearest the blob's colour class in the target's palette
+        (so the head's skin without its hair)."""
+        palette = self.palette(0)
+        colours = list(palette)
+        pixels = image.astype(float)
+        nearest = np.argmin([np.linalg.norm(pixels - palette[c], axis=2) for c in colours], axis=0)
+        out = {}
+        for k, label in zip(self.body.blob_links, self.body.blob_labels, strict=True):
+            ys, xs = np.nonzero((label_image == k + 1) & (nearest == colours.index(self.body.links[k].blob.colour)))
+            out[label] = (xs, ys)
+        return out
+
     def _noise_pool(self, height: int, width: int, sigma: float) -> np.ndarray:
         key = (height, width, round(float(sigma), 6))
         pool = self._noise.get(key)
