@@ -8,6 +8,7 @@ good one, and checks that the node logged the bad ones and answered the good one
 from __future__ import annotations
 
 import subprocess
+import sys
 import time
 
 import numpy as np
@@ -82,3 +83,54 @@ def test_blob_features_survives_bad_images_and_priors(env, probe, tmp_path):
     assert "priors[0] ('head') has a non-finite mean or covariance" in text
     assert "image is 40x30, earlier frames were 80x60" in text
     assert "Traceback" not in text
+
+
+HANGING_NODE = """
+import time
+import artrack_nodes.common as common
+from rclpy.node import Node
+
+class Hangs(Node):
+    def __init__(self):
+        super().__init__("hangs")
+        self.get_logger().info("up")
+
+    def destroy_node(self):  # a participant that deadlocks on destruction
+        time.sleep(1000)
+
+common.TEARDOWN_TIMEOUT_S = 2.0
+raise SystemExit(common.run_node(Hangs, "a node whose teardown hangs", []))
+"""
+
+
+def test_node_teardown_is_bounded_and_stacks_dump_on_sigusr1(env, tmp_path):
+    """run_node (every node's main): SIGUSR1 dumps the Python stacks and the node keeps running;
+    after SIGTERM a teardown that hangs is cut off after TEARDOWN_TIMEOUT_S with the stacks on
+    stderr and exit code 1 instead of a node that never exits."""
+    import signal
+
+    script = tmp_path / "hangs.py"
+    script.write_text(HANGING_NODE)
+    log = tmp_path / "hangs.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen([sys.executable, str(script)], env=env, stdout=out,
+                                stderr=subprocess.STDOUT)
+    try:
+        t0 = time.monotonic()
+        while "up" not in log.read_text() and time.monotonic() - t0 < 60 and proc.poll() is None:
+            time.sleep(0.2)
+        assert "up" in log.read_text(), log.read_text()
+        proc.send_signal(signal.SIGUSR1)
+        t0 = time.monotonic()
+        while "spin" not in log.read_text() and time.monotonic() - t0 < 30:
+            time.sleep(0.2)
+        assert proc.poll() is None and "in run_node" in log.read_text(), log.read_text()
+        proc.terminate()
+        code = proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = log.read_text()
+    assert code == 1, (code, text)
+    assert "in destroy_node" in text, text

@@ -6,7 +6,9 @@ the ROS-free ``artrack`` package (docs/ARCHITECTURE.md).
 
 from __future__ import annotations
 
+import faulthandler
 import os
+import signal
 import sys
 import time
 from collections import deque
@@ -103,6 +105,12 @@ def print_help(prog: str, doc: str, params: list[tuple[str, Any, str]]) -> None:
         print(f"  {name} ({default!r}): {desc}")
 
 
+#: s a node's teardown (destroy, rclpy shutdown, interpreter exit) may take after its spin has
+#: ended before the node dumps its Python stacks to stderr and exits with code 1: a DDS
+#: participant that deadlocks on destruction must not keep a stopped node alive.
+TEARDOWN_TIMEOUT_S = 30.0
+
+
 def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, str]], args=None,
              limits: dict[str, tuple] | None = None, runtime: Iterable[str] | None = None) -> int:
     """main() for every node: --help, init, spin, clean shutdown. Returns the exit code.
@@ -114,6 +122,8 @@ def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, st
             doc = doc + "\n" + param_limits_help(limits or {}, runtime or ())
         print_help(os.path.basename(argv[0]), doc, params)
         return 0
+    # `kill -USR1 <pid>` dumps every thread's Python stack to stderr (the node keeps running).
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     rclpy.init(args=argv)
     node = None
     code = 0
@@ -141,7 +151,9 @@ def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, st
             if node is not None:
                 close = getattr(node, "close", None)
                 if close is not None:
-                    close()
+                    close()  # outputs first (the recorder's bag), unbounded
+                # From here on nothing is left to write: bound the rest (see TEARDOWN_TIMEOUT_S).
+                faulthandler.dump_traceback_later(TEARDOWN_TIMEOUT_S, exit=True)
                 node.destroy_node()
         except Exception:
             if rclpy.ok():
