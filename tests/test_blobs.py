@@ -309,6 +309,46 @@ def test_part_colours_give_a_bare_torso_the_skin_class():
         BlobTrackerConfig(part_colours=["torso"])
 
 
+def test_colour_class_learnt_from_a_wrong_prior_is_learnt_again():
+    """The shirt class is bootstrapped on the first labelled frame from a torso prior that sits on
+    a green bag (a wrong start-up pose); with the priors right again, the green model rejects the
+    whole torso. After ``colour_relearn_frames`` such frames the class is bootstrapped again from
+    the torso's core: the torso is found, its model is the shirt's colour, once. With the relearning
+    off the torso is never found. A right model is never relearned."""
+    GREEN_BGR = (40, 170, 60)
+
+    def run(relearn_frames: int, first_prior_on_bag: bool = True, n: int = 12):
+        tracker = make_tracker(colour_relearn_frames=relearn_frames)
+        seed_with_moving_person(tracker)
+        parts = {**default_parts(), "bag": ("ellipse", (70.0, 160.0), (22.0, 30.0), GREEN_BGR)}
+        found = []
+        for t in range(n):
+            img, masks = render(parts, 100 + t)
+            priors = [p for p in priors_for(parts) if p.label in LABELS]
+            if t == 0 and first_prior_on_bag:
+                torso = next(p for p in priors if p.label == "torso")
+                torso.mean = np.array(parts["bag"][1], float)
+            blobs = by_label(tracker.step(img, priors))
+            found.append("torso" in blobs)
+            if t == 0 and first_prior_on_bag:
+                assert np.allclose(tracker.colour_model("shirt").mean[:2], [60 / 270, 170 / 270], atol=0.03)
+        return tracker, found, blobs, masks
+
+    tracker, found, blobs, masks = run(relearn_frames=4)
+    assert found[1:5] == [False] * 4 and all(found[6:]), found
+    assert tracker.colour_relearned == {"shirt": 1}
+    assert np.allclose(tracker.colour_model("shirt").mean[:2], [35 / 280, 80 / 280], atol=0.02)
+    ys, xs = np.nonzero(masks["torso"])
+    assert np.linalg.norm(blobs["torso"].mean - [xs.mean(), ys.mean()]) < 1.5
+    _, found, _, _ = run(relearn_frames=0)
+    assert not any(found[1:]), found
+    tracker, found, _, _ = run(relearn_frames=4, first_prior_on_bag=False)
+    assert all(found) and tracker.colour_relearned == {}
+    for bad in ({"colour_relearn_frames": -1}, {"colour_relearn_frames": 2.5}, {"colour_relearn_fraction": 1.5}):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            BlobTrackerConfig(**bad)
+
+
 def test_occluded_prior_is_not_reported():
     tracker = make_tracker()
     seed_with_moving_person(tracker)

@@ -43,7 +43,12 @@ robustly (median / MAD, then trimmed mean and covariance) from the foreground in
 its labels' prior cores (``colour_core_sigma``) on its first labelled frame. All
 classes then follow their labelled core pixels that fit the model
 (``colour_learn_gate``) at ``colour_learning_rate``, so ghosts and neighbours
-cannot widen them. Each foreground pixel inside a label's gate gets the MAP label
+cannot widen them. Gated learning cannot repair a model bootstrapped from the wrong
+pixels (a start-up pose off the part: e.g. a shirt class learnt from a floor ghost
+rejects the shirt for good), so a learned class (not skin) whose gate passed less than
+``colour_relearn_fraction`` of the foreground in its labels' cores for
+``colour_relearn_frames`` frames in a row is bootstrapped again from those cores.
+Each foreground pixel inside a label's gate gets the MAP label
 
     Γ_ij = argmax_k  log N(c_ij; μ_c(k), Σ_c(k)) + w · log(c_k · N((u, v); m_k, S_k))
 
@@ -190,6 +195,12 @@ class BlobTrackerConfig:
     colour_core_sigma: float = 2.0
     #: ... and only from pixels within this colour Mahalanobis distance (sigmas) of the current model
     colour_learn_gate: float = 2.5
+    #: a learned colour class (not skin) is bootstrapped again when, for this many frames in a row, less
+    #: than ``colour_relearn_fraction`` of the foreground pixels in its labels' cores passed its colour
+    #: gate (a model learnt from a ghost or a wrong start-up pose rejects the part itself and, gated as
+    #: learning is, would never recover); 0 = never
+    colour_relearn_frames: int = 15
+    colour_relearn_fraction: float = 0.1
 
     # ---- class priors: feedback and temporal smoothness
     #: half-size of a label's region of interest, in sigmas of its spatial prior (also its spatial gate)
@@ -274,7 +285,8 @@ class BlobTrackerConfig:
         v = self.min_blob_pixels_width
         if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise bad("min_blob_pixels_width", "must be a non-negative number")
-        for name in ("background_learning_rate", "background_ghost_rate", "colour_learning_rate"):
+        for name in ("background_learning_rate", "background_ghost_rate", "colour_learning_rate",
+                     "colour_relearn_fraction"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0:
                 raise bad(name, "must be in [0, 1]")
@@ -283,7 +295,7 @@ class BlobTrackerConfig:
                 raise bad(name, "must be a positive integer")
         for name in ("min_blob_pixels", "startup_max_skin_blobs", "temporal_max_missed", "foreground_median",
                      "background_static_frames", "background_ghost_frames", "startup_min_seed_samples",
-                     "startup_settle_frames"):
+                     "startup_settle_frames", "colour_relearn_frames"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
                 raise bad(name, "must be a non-negative integer")
         if self.colour_features not in ("rgI", "rg"):
@@ -617,6 +629,8 @@ class BlobTracker2D:
         """Forget everything: background, colour models, temporal memory."""
         self.background = BackgroundModel(self.config)
         self.colour_models: dict[str, ColourModel] = {}
+        self.colour_starved: dict[str, int] = {}  # colour class -> frames in a row rejecting its cores
+        self.colour_relearned: dict[str, int] = {}  # colour class -> times bootstrapped again
         self.tracks: dict[str, _Track] = {}
         self.image_size: tuple[int, int] | None = None  # (W, H) input
         self.work_size: tuple[int, int] | None = None  # (W, H) working resolution
@@ -832,6 +846,7 @@ class BlobTracker2D:
                 ds2s.append(ds2[gated])
             self._bootstrap_colours(models, ds2s, [feat[sel] for sel in sels])
             dc2s = []
+            core_fg: dict[str, list[int]] = {}  # colour class -> [core foreground px, of them in its gate]
             for m, sel, ds2 in zip(models, sels, ds2s):
                 f = feat[sel]
                 A, logdet_c = m.colour.whitening(cfg)
@@ -841,6 +856,10 @@ class BlobTracker2D:
                 ok = dc2 <= gc2
                 if m.colour.min_intensity > 0:
                     ok &= f[:, 2] >= m.colour.min_intensity
+                in_core = ds2 <= _F32(cfg.colour_core_sigma**2)
+                counts = core_fg.setdefault(self.colour_classes[self.labels[m.index]], [0, 0])
+                counts[0] += int(np.count_nonzero(in_core))
+                counts[1] += int(np.count_nonzero(in_core & ok))
                 log_prior = m.log_confidence - 0.5 * math.log(np.linalg.det(m.cov))
                 const = m.weight * log_prior - 0.5 * logdet_c
                 score = _F32(const) - 0.5 * (dc2 + _F32(m.weight) * ds2)
@@ -895,6 +914,8 @@ class BlobTracker2D:
                 if self.tracks[label].missed > self.config.temporal_max_missed:
                     del self.tracks[label]
         self._learn_colours(core_colours)
+        if models:
+            self._check_starved(core_fg)  # after the learning: a class marked here is bootstrapped next frame
         self.timings_ms = {"classification": 1e3 * (t1 - t0), "statistics": 1e3 * (time.perf_counter() - t1)}
         return blobs, support >= 0
 
@@ -950,6 +971,29 @@ class BlobTracker2D:
             model = self.colour_model(cls)
             model.mean, model.cov = _colour_stats(c[keep])
             model.learned = True
+
+    def _check_starved(self, core_fg: dict[str, list[int]]) -> None:
+        """Count, per learned colour class (not skin), the frames in a row in which less than
+        ``colour_relearn_fraction`` of the foreground pixels in its labels' cores passed its colour
+        gate (core_fg: class -> [core foreground pixels, of them in the gate]); after
+        ``colour_relearn_frames`` such frames the class is marked unlearned, so that the next frame
+        bootstraps it again from the cores (``_bootstrap_colours``). Frames with fewer than
+        ``min_blob_pixels`` core foreground pixels (the part hidden or off its prior) do not count."""
+        cfg = self.config
+        if cfg.colour_relearn_frames <= 0:
+            return
+        for cls, (n_core, n_gate) in sorted(core_fg.items()):
+            model = self.colour_models.get(cls)
+            if cls == SKIN or model is None or not model.learned or n_core < self._min_pixels():
+                continue
+            if n_gate < cfg.colour_relearn_fraction * n_core:
+                self.colour_starved[cls] = self.colour_starved.get(cls, 0) + 1
+            else:
+                self.colour_starved[cls] = 0
+            if self.colour_starved[cls] >= cfg.colour_relearn_frames:
+                model.learned = False
+                self.colour_starved[cls] = 0
+                self.colour_relearned[cls] = self.colour_relearned.get(cls, 0) + 1
 
     def _learn_colours(self, colours_by_class: dict[str, list[np.ndarray]]) -> None:
         """Blend each colour class model towards the statistics of its labels' core pixels."""
