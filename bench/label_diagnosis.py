@@ -21,7 +21,13 @@ hands / legs swapped, per-label seen share, 2-D px error, mislabelled share, and
 offset, in the true link's frame, of the triangulated blob (seen in 3 or more views) from the
 body model's blob centre: a bias of the appearance model) and ends with one JSON line of the
 summary. ``--true-start FRAME`` re-seeds the skeleton with the true pose at that frame (the
-loop's drift from a perfect start, without the start-up). Deterministic; run from the repository root::
+loop's drift from a perfect start, without the start-up); ``--true-priors FRAME`` re-seeds it at
+every frame from there on (the labelling given right priors, without the loop's dynamics).
+``--support`` adds, per label and view, the recall and precision of the blob tracker's support
+map against the renderer's true blob pixels (``synth.Renderer.blob_pixels``: the link's pixels
+nearest the blob's colour class), each colour class model's mean against the true pixels' mean
+colour, and how often each class was bootstrapped again (``colour_relearn_frames``).
+Deterministic; run from the repository root::
 
     .venv/bin/python bench/label_diagnosis.py --scene default --seed 3
 """
@@ -44,13 +50,14 @@ import numpy as np  # noqa: E402
 from closed_loop import SCENES, scene_bag  # noqa: E402
 
 from artrack.bags import read_scene  # noqa: E402
+from artrack.blobs import colour_features  # noqa: E402
 from artrack.body_model import load_body_model  # noqa: E402
 from artrack.constraints import exp_so3  # noqa: E402
 from artrack.evaluation import label_confusion  # noqa: E402
 from artrack.motion import pose_at  # noqa: E402
 from artrack.pipeline import ClosedLoopPipeline, load_pipeline_config  # noqa: E402
 from artrack.progress import Progress  # noqa: E402
-from artrack.synth import START_STAMP_NS, SceneConfig  # noqa: E402
+from artrack.synth import START_STAMP_NS, Renderer, SceneConfig  # noqa: E402
 
 HEADING_LIMIT_DEG = 45.0
 
@@ -81,6 +88,10 @@ def main() -> int:
     ap.add_argument("--cache", default="/tmp/artrack_bench")
     ap.add_argument("--true-start", type=int, default=-1, metavar="FRAME",
                     help="re-seed the skeleton with the true pose at this frame (-1: its own start-up)")
+    ap.add_argument("--true-priors", type=int, default=-1, metavar="FRAME",
+                    help="re-seed the skeleton with the true pose at every frame from this one (-1: never)")
+    ap.add_argument("--support", action="store_true",
+                    help="support-map recall / precision per label and view against the true blob pixels")
     args = ap.parse_args()
     body = load_body_model()
     path = scene_bag(args.scene, 4, argparse.Namespace(**vars(args)), body)
@@ -99,14 +110,20 @@ def main() -> int:
                    for k, lab in enumerate(labels)}
     offsets: dict[str, list[np.ndarray]] = {lab: [] for lab in labels}
     rows = []
+    renderer = Renderer(body, scene.cameras, cfg.seed) if args.support else None
+    support = {}  # (camera, label) -> [(recall, precision)] over tracked frames, NaN where undefined
+    colour_true = {}  # (camera, colour class) -> true pixels' mean colour features, last frame
     for stamp, images in Progress(scene.frames(), total=scene.n_frames, label="label diagnosis"):
         t = (int(stamp) - START_STAMP_NS) * 1e-9 - SCENES[args.scene].get("empty_s", 0.0)
-        if round((int(stamp) - START_STAMP_NS) * cfg.fps * 1e-9) == args.true_start and t >= 0:
+        index = round((int(stamp) - START_STAMP_NS) * cfg.fps * 1e-9)
+        if t >= 0 and (index == args.true_start or 0 <= args.true_priors <= index):
             pipe.restart(int(stamp), body.joint_positions(pose_at(cfg.motion_name, t, body)))
         res = pipe.step(stamp, images)
         if t < 0 or not np.all(np.isfinite(res.estimate.joints)):
             continue
         theta = pose_at(cfg.motion_name, t, body)
+        if renderer is not None:
+            support_scores(pipe, renderer, theta, index, images, labels, support, colour_true)
         T = body.forward_kinematics(theta)
         for lab, b in pipe.skeleton.estimator.last_observed.items():
             if len(b.cameras) >= 3:
@@ -177,8 +194,68 @@ def main() -> int:
         off = s["centre_offset_mm"]
         print(f"{lab:<9}{s['mean_views']:8.2f}{s['px']:8.1f}{s['obs3d_mm']:17.0f}{100 * s['mislabelled_share']:15.0f}"
               + ("  " + " ".join(f"{v:6.0f}" for v in off) if off else "  -"))
+    if renderer is not None:
+        summary["support"] = print_support(pipe, labels, support, colour_true)
     print(json.dumps(summary))
     return 0
+
+
+def support_scores(pipe, renderer, theta, index, images, labels, support, colour_true) -> None:
+    """Recall and precision of each tracking view's support map per label against the renderer's
+    true blob pixels of this frame (appended to ``support``); the true mean colour features of
+    each colour class (``colour_true``)."""
+    _, label_images = renderer.render(theta, (), 0.0, frame_index=index, labels=True)  # labels only
+    for cam, label_image in zip(renderer.cameras, label_images, strict=True):
+        tracker = pipe.blob_stages[cam.name].tracker
+        if not tracker.support_labels or tracker.mode != "tracking":
+            continue
+        smap = tracker.support_map
+        truth = renderer.blob_pixels(images[cam.name], label_image)
+        feats = colour_features(images[cam.name])
+        by_class: dict[str, list[np.ndarray]] = {}
+        for lab in labels:
+            true = np.zeros(smap.shape, bool)
+            xs, ys = truth[lab]
+            true[ys, xs] = True
+            got = smap == tracker.support_labels.index(lab) if lab in tracker.support_labels else np.zeros_like(true)
+            both = np.count_nonzero(true & got)
+            n_true, n_got = np.count_nonzero(true), np.count_nonzero(got)
+            support.setdefault((cam.name, lab), []).append(
+                (both / n_true if n_true >= 10 else math.nan, both / n_got if n_got >= 10 else math.nan))
+            by_class.setdefault(tracker.colour_classes[lab], []).append(feats[ys, xs])
+        for cls, parts in by_class.items():
+            c = np.concatenate(parts)
+            if len(c):
+                colour_true[(cam.name, cls)] = c.mean(axis=0)
+
+
+def print_support(pipe, labels, support, colour_true) -> dict:
+    """Print the support table (recall / precision %, per label and view), the colour models and
+    how often each class was bootstrapped again; returns them for the JSON summary."""
+    cams = sorted({c for c, _ in support})
+    out: dict = {"recall_precision": {}, "colour_models": {}, "colour_relearned": {}}
+    print("\nsupport map vs true blob pixels, recall / precision % (mean over tracked frames)")
+    print(f"{'label':<9}" + "".join(f"{c:>13}" for c in cams))
+    for lab in labels:
+        cells = []
+        for c in cams:
+            v = np.array(support.get((c, lab), [(math.nan, math.nan)]), float)
+            r, p = (np.nanmean(v[:, k]) if np.any(np.isfinite(v[:, k])) else math.nan for k in (0, 1))
+            out["recall_precision"].setdefault(lab, {})[c] = [round(100 * r, 1), round(100 * p, 1)]
+            cells.append(f"{100 * r:8.0f}/{100 * p:<4.0f}")
+        print(f"{lab:<9}" + "".join(cells))
+    print("colour class models at the end (r, g, I) vs the true pixels' mean; times bootstrapped again")
+    for c in cams:
+        tracker = pipe.blob_stages[c].tracker
+        for cls, model in sorted(tracker.colour_models.items()):
+            true = colour_true.get((c, cls))
+            out["colour_models"].setdefault(c, {})[cls] = {
+                "model": np.round(model.mean, 3).tolist(),
+                "true": None if true is None else np.round(np.asarray(true, float), 3).tolist()}
+            print(f"  {c} {cls:<9} model {np.round(model.mean, 3)} true "
+                  f"{'-' if true is None else np.round(true, 3)} relearned {tracker.colour_relearned.get(cls, 0)}")
+        out["colour_relearned"][c] = dict(tracker.colour_relearned)
+    return out
 
 
 if __name__ == "__main__":

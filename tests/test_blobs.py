@@ -344,7 +344,7 @@ def test_colour_class_learnt_from_a_wrong_prior_is_learnt_again():
     assert not any(found[1:]), found
     tracker, found, _, _ = run(relearn_frames=4, first_prior_on_bag=False)
     assert all(found) and tracker.colour_relearned == {}
-    for bad in ({"colour_relearn_frames": -1}, {"colour_relearn_frames": 2.5}, {"colour_relearn_fraction": 1.5}):
+    for bad in ({"colour_relearn_frames": -1}, {"colour_relearn_frames": 2.5}):
         with pytest.raises(InputError, match=next(iter(bad))):
             BlobTrackerConfig(**bad)
 

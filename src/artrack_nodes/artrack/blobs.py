@@ -45,9 +45,9 @@ classes then follow their labelled core pixels that fit the model
 (``colour_learn_gate``) at ``colour_learning_rate``, so ghosts and neighbours
 cannot widen them. Gated learning cannot repair a model bootstrapped from the wrong
 pixels (a start-up pose off the part: e.g. a shirt class learnt from a floor ghost
-rejects the shirt for good), so a learned class (not skin) whose gate passed less than
-``colour_relearn_fraction`` of the foreground in its labels' cores for
-``colour_relearn_frames`` frames in a row is bootstrapped again from those cores.
+rejects the shirt for good), so a learned class (not skin) is bootstrapped again from its
+labels' cores when the median colour of the foreground in those cores has been outside the
+model's ``colour_learn_gate`` for ``colour_relearn_frames`` frames in a row.
 Each foreground pixel inside a label's gate gets the MAP label
 
     Γ_ij = argmax_k  log N(c_ij; μ_c(k), Σ_c(k)) + w · log(c_k · N((u, v); m_k, S_k))
@@ -195,12 +195,11 @@ class BlobTrackerConfig:
     colour_core_sigma: float = 2.0
     #: ... and only from pixels within this colour Mahalanobis distance (sigmas) of the current model
     colour_learn_gate: float = 2.5
-    #: a learned colour class (not skin) is bootstrapped again when, for this many frames in a row, less
-    #: than ``colour_relearn_fraction`` of the foreground pixels in its labels' cores passed its colour
-    #: gate (a model learnt from a ghost or a wrong start-up pose rejects the part itself and, gated as
+    #: a learned colour class (not skin) is bootstrapped again when, for this many frames in a row, the
+    #: median colour of the foreground pixels in its labels' cores lay outside its ``colour_learn_gate``
+    #: (a model learnt from a ghost or a wrong start-up pose does not describe the part, and, gated as
     #: learning is, would never recover); 0 = never
     colour_relearn_frames: int = 15
-    colour_relearn_fraction: float = 0.1
 
     # ---- class priors: feedback and temporal smoothness
     #: half-size of a label's region of interest, in sigmas of its spatial prior (also its spatial gate)
@@ -285,8 +284,7 @@ class BlobTrackerConfig:
         v = self.min_blob_pixels_width
         if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise bad("min_blob_pixels_width", "must be a non-negative number")
-        for name in ("background_learning_rate", "background_ghost_rate", "colour_learning_rate",
-                     "colour_relearn_fraction"):
+        for name in ("background_learning_rate", "background_ghost_rate", "colour_learning_rate"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0:
                 raise bad(name, "must be in [0, 1]")
@@ -846,7 +844,7 @@ class BlobTracker2D:
                 ds2s.append(ds2[gated])
             self._bootstrap_colours(models, ds2s, [feat[sel] for sel in sels])
             dc2s = []
-            core_fg: dict[str, list[int]] = {}  # colour class -> [core foreground px, of them in its gate]
+            core_fg: dict[str, list[np.ndarray]] = {}  # colour class -> its labels' core foreground colours
             for m, sel, ds2 in zip(models, sels, ds2s):
                 f = feat[sel]
                 A, logdet_c = m.colour.whitening(cfg)
@@ -856,10 +854,8 @@ class BlobTracker2D:
                 ok = dc2 <= gc2
                 if m.colour.min_intensity > 0:
                     ok &= f[:, 2] >= m.colour.min_intensity
-                in_core = ds2 <= _F32(cfg.colour_core_sigma**2)
-                counts = core_fg.setdefault(self.colour_classes[self.labels[m.index]], [0, 0])
-                counts[0] += int(np.count_nonzero(in_core))
-                counts[1] += int(np.count_nonzero(in_core & ok))
+                core_fg.setdefault(self.colour_classes[self.labels[m.index]], []).append(
+                    f[ds2 <= _F32(cfg.colour_core_sigma**2)])
                 log_prior = m.log_confidence - 0.5 * math.log(np.linalg.det(m.cov))
                 const = m.weight * log_prior - 0.5 * logdet_c
                 score = _F32(const) - 0.5 * (dc2 + _F32(m.weight) * ds2)
@@ -972,21 +968,23 @@ class BlobTracker2D:
             model.mean, model.cov = _colour_stats(c[keep])
             model.learned = True
 
-    def _check_starved(self, core_fg: dict[str, list[int]]) -> None:
-        """Count, per learned colour class (not skin), the frames in a row in which less than
-        ``colour_relearn_fraction`` of the foreground pixels in its labels' cores passed its colour
-        gate (core_fg: class -> [core foreground pixels, of them in the gate]); after
-        ``colour_relearn_frames`` such frames the class is marked unlearned, so that the next frame
-        bootstraps it again from the cores (``_bootstrap_colours``). Frames with fewer than
-        ``min_blob_pixels`` core foreground pixels (the part hidden or off its prior) do not count."""
+    def _check_starved(self, core_fg: dict[str, list[np.ndarray]]) -> None:
+        """Count, per learned colour class (not skin), the frames in a row in which the median
+        colour of the foreground in its labels' cores (core_fg: class -> colour features (n, 3)
+        per label) lay outside the model's ``colour_learn_gate``; after ``colour_relearn_frames``
+        such frames the class is marked unlearned, so that the next frame bootstraps it again from
+        the cores (``_bootstrap_colours``). Frames with fewer than ``min_blob_pixels`` core
+        foreground pixels (the part hidden, or its prior off the person) do not count."""
         cfg = self.config
         if cfg.colour_relearn_frames <= 0:
             return
-        for cls, (n_core, n_gate) in sorted(core_fg.items()):
+        for cls, parts in sorted(core_fg.items()):
             model = self.colour_models.get(cls)
-            if cls == SKIN or model is None or not model.learned or n_core < self._min_pixels():
+            c = np.concatenate(parts, axis=0)
+            if cls == SKIN or model is None or not model.learned or c.shape[0] < self._min_pixels():
                 continue
-            if n_gate < cfg.colour_relearn_fraction * n_core:
+            median = np.median(c, axis=0)[None]
+            if float(model.distance2(median, cfg)[0]) > cfg.colour_learn_gate**2:
                 self.colour_starved[cls] = self.colour_starved.get(cls, 0) + 1
             else:
                 self.colour_starved[cls] = 0
