@@ -627,7 +627,7 @@ class BlobTracker2D:
         """Forget everything: background, colour models, temporal memory."""
         self.background = BackgroundModel(self.config)
         self.colour_models: dict[str, ColourModel] = {}
-        self.colour_starved: dict[str, int] = {}  # colour class -> frames in a row rejecting its cores
+        self.colour_stale_frames: dict[str, int] = {}  # colour class -> frames in a row its cores looked otherwise
         self.colour_relearned: dict[str, int] = {}  # colour class -> times bootstrapped again
         self.tracks: dict[str, _Track] = {}
         self.image_size: tuple[int, int] | None = None  # (W, H) input
@@ -911,7 +911,7 @@ class BlobTracker2D:
                     del self.tracks[label]
         self._learn_colours(core_colours)
         if models:
-            self._check_starved(core_fg)  # after the learning: a class marked here is bootstrapped next frame
+            self._check_stale_colours(core_fg)  # after the learning: a class marked here is bootstrapped next frame
         self.timings_ms = {"classification": 1e3 * (t1 - t0), "statistics": 1e3 * (time.perf_counter() - t1)}
         return blobs, support >= 0
 
@@ -968,7 +968,7 @@ class BlobTracker2D:
             model.mean, model.cov = _colour_stats(c[keep])
             model.learned = True
 
-    def _check_starved(self, core_fg: dict[str, list[np.ndarray]]) -> None:
+    def _check_stale_colours(self, core_fg: dict[str, list[np.ndarray]]) -> None:
         """Count, per learned colour class (not skin), the frames in a row in which the median
         colour of the foreground in its labels' cores (core_fg: class -> colour features (n, 3)
         per label) lay outside the model's ``colour_learn_gate``; after ``colour_relearn_frames``
@@ -985,12 +985,12 @@ class BlobTracker2D:
                 continue
             median = np.median(c, axis=0)[None]
             if float(model.distance2(median, cfg)[0]) > cfg.colour_learn_gate**2:
-                self.colour_starved[cls] = self.colour_starved.get(cls, 0) + 1
+                self.colour_stale_frames[cls] = self.colour_stale_frames.get(cls, 0) + 1
             else:
-                self.colour_starved[cls] = 0
-            if self.colour_starved[cls] >= cfg.colour_relearn_frames:
+                self.colour_stale_frames[cls] = 0
+            if self.colour_stale_frames[cls] >= cfg.colour_relearn_frames:
                 model.learned = False
-                self.colour_starved[cls] = 0
+                self.colour_stale_frames[cls] = 0
                 self.colour_relearned[cls] = self.colour_relearned.get(cls, 0) + 1
 
     def _learn_colours(self, colours_by_class: dict[str, list[np.ndarray]]) -> None:
