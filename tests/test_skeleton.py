@@ -271,6 +271,46 @@ def test_startup_picks_the_person_at_start_xy(body, cameras):
     assert dist[0.7] < 0.08, dist
 
 
+@pytest.mark.parametrize("yaw", [0.0, 1.2, 2.6, -2.0])
+def test_startup_holds_its_heading_and_skips_a_two_view_ghost_hand(body, cameras, yaw):
+    """The left hand is hidden in every view; a skin-coloured ghost within arm's reach is seen by
+    two of the four cameras. By default (startup.min_hand_views 3) the ghost is no hand and the
+    heading is right; taken as the left hand (min_hand_views 0), the fit still keeps the heading
+    because each candidate is held near its heading (startup.heading_sigma_rad); with that off too,
+    the fit turns the body towards the ghost by ~33 deg."""
+    theta = body.rest_pose()
+    theta[0:6] = [0.3, -0.2, 0.95, 0.0, 0.0, yaw]
+    theta[body.dof_slice("l_upper_arm")] = [0.0, 0.5, 0.0]  # left arm swung back
+    theta[body.dof_slice("r_upper_arm")] = [0.0, -0.6, 0.0]  # right arm forward
+    theta[body.dof_slice("r_forearm")] = [0.6]
+    blobs = startup_blobs(body, cameras, theta)
+    centres = body.blob_centres(theta)
+    left = centres[body.blob_labels.index("l_hand")]
+    ghost = np.array([0.3 + 0.6 * math.cos(yaw + 1.9), -0.2 + 0.6 * math.sin(yaw + 1.9), 1.2])
+    for ci, cam in enumerate(cameras):
+        uv, _ = cam.project(left[None])
+        hidden = min((b for b in blobs[cam.name] if b.label == "skin"), key=lambda b: np.linalg.norm(b.mean - uv[0]))
+        blobs[cam.name] = [b for b in blobs[cam.name] if b is not hidden]
+        if ci in (0, 2):
+            m, J = cam.project_jacobian(ghost[None])
+            blobs[cam.name].append(Blob2D("skin", m[0], J[0] @ (np.eye(3) * 0.03**2) @ J[0].T, pixel_count=300))
+
+    def start(**startup):
+        e = make_estimator("baseline", body, cameras, {"startup": startup}).update(stamp(0), blobs)
+        assert e.status == STATUS_TRACKING
+        R = e.links[0].rotation
+        err = abs((math.atan2(R[1, 0], R[0, 0]) - yaw + np.pi) % (2 * np.pi) - np.pi)
+        return math.degrees(err), float(np.linalg.norm(_hand(e, "l_hand") - ghost)), e
+
+    err, to_ghost, e = start()
+    assert err < 10 and to_ghost > 0.3, (err, to_ghost)
+    assert np.linalg.norm(_hand(e, "r_hand") - centres[body.blob_labels.index("r_hand")]) < 0.05
+    err, to_ghost, _ = start(min_hand_views=0)
+    assert to_ghost < 0.05 and err < 15, (err, to_ghost)
+    err, to_ghost, _ = start(min_hand_views=0, heading_sigma_rad=0.0)
+    assert to_ghost < 0.05 and err > 25, (err, to_ghost)
+
+
 def test_status_initializing_lost_and_recovery(body, cameras):
     cfg = {"tracking": {"lost_after_frames": 3}}
     est = make_estimator("kinematic", body, cameras, cfg)

@@ -65,11 +65,14 @@ centre, ``skin`` blobs are matched across views (candidate correspondences seede
 from camera pairs, extended to the other views, scored by reprojection error,
 picked greedily; with ``startup.start_radius_m`` > 0 only those within that horizontal
 distance of ``startup.start_xy``: the person standing there when several are in view),
-the highest becomes the head (face), the two others the hands;
+the highest becomes the head (face), the two others the hands (a hand must be
+matched in ``startup.min_hand_views`` views: a point only two views agree on is more
+often a skin-coloured ghost);
 the heading is taken from the face's horizontal offset from the body axis and
 from the line between the hands (whose two perpendicular choices are tried), and
-the rest pose rotated about z is fitted for each candidate, keeping the most
-consistent. For ``tracking.verify_frames`` frames after any initialisation the
+the rest pose rotated about z is fitted for each candidate, held near that heading
+(``startup.heading_sigma_rad``), keeping the most consistent. For
+``tracking.verify_frames`` frames after any initialisation the
 mirrored hypothesis (heading + π, left <-> right) is fitted too and taken over if
 it explains the labelled blobs much better (knees and elbows bend one way only).
 ``STATUS_LOST`` after ``tracking.lost_after_frames`` consecutive frames with fewer
@@ -254,6 +257,8 @@ class StartupConfig:
     reach_margin: float = 1.15
     start_xy: tuple = (0.0, 0.0)
     start_radius_m: float = 0.0
+    heading_sigma_rad: float = 0.35
+    min_hand_views: int = 3
 
 
 @dataclass
@@ -1053,10 +1058,14 @@ class _Estimator:
         # The face is the highest skin point; hands are the best-scoring others within
         # arm's reach of it (skin-coloured clutter elsewhere is ignored).
         face = max((p[0] for p in points), key=lambda x: x[2])
+        # A hand seen in fewer views than min_hand_views (of the cameras with skin blobs) is more
+        # often a skin-coloured ghost of the seeding period that two views happen to agree on.
+        need = min(s.min_hand_views, sum(1 for sk in skin.values() if sk))
         hands = [
             p[0]
             for p in points
             if p[0] is not face and np.linalg.norm(p[0] - face) <= s.reach_margin * self._reach
+            and len(p[2]) >= need
         ][:2]
         yaw_face = None
         if centre is not None:
@@ -1107,6 +1116,13 @@ class _Estimator:
             if s.standing_height_sigma_m > 0:  # standing on the floor (z = 0): pelvis near its rest height
                 info_h = np.diag([0.0, 0.0, 1.0 / s.standing_height_sigma_m**2])
                 targets.append(PointTarget(0, np.zeros(3), self.kin.rest[0:3], info_h))
+            if s.heading_sigma_rad > 0:
+                # Held near this candidate's heading: a point 1 m ahead of the root, sideways sigma
+                # heading_sigma_rad x 1 m. Without it a fit to a face, a hand and the centroid turns
+                # the body freely (synthetic default scene: fits started at the right heading ended
+                # 80-130 deg away), and the candidates stop being candidates.
+                info_y = np.outer(left, left) / s.heading_sigma_rad**2
+                targets.append(PointTarget(0, np.array([1.0, 0.0, 0.0]), root + fwd, info_y))
             theta, cost = self._init_fit(targets, self._rest_at(root, yaw))
             if yaw_face is not None:
                 yaw_fit = _heading(exp_so3(theta[3:6]))
