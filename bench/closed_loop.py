@@ -37,6 +37,15 @@ tracker); wall-clock times vary with the machine load. Run from the repository r
     .venv/bin/python bench/closed_loop.py --scenes default --estimators baseline --feedback on --seeds 1 2 3
     .venv/bin/python bench/closed_loop.py --scenes default --estimators baseline baseline+edges --feedback on \
         --seeds 1 2 3 4 5 6 --true-start 60      # blobs vs blobs + edges from a correct pose at frame 60
+
+A change is judged on many seeds, paired: save the JSON line of a run before it and pass it
+with ``--compare`` to the run after it (``artrack.evaluation.compare_paired``: per seed
+before -> after, means, medians, seeds better / worse by more than 1 mm, sign-test p)::
+
+    .venv/bin/python bench/closed_loop.py --scenes default --estimators baseline --feedback on \
+        --seeds 1 2 3 4 5 6 7 8 9 10 | tail -1 > before.json
+    # ... the change ...
+    .venv/bin/python bench/closed_loop.py ... --compare before.json
 """
 
 from __future__ import annotations
@@ -59,6 +68,7 @@ from scipy.signal import savgol_filter  # noqa: E402
 
 from artrack.bags import read_scene, write_scene_bag  # noqa: E402
 from artrack.body_model import load_body_model  # noqa: E402
+from artrack.evaluation import compare_paired  # noqa: E402
 from artrack.motion import pose_at  # noqa: E402
 from artrack.pipeline import ClosedLoopPipeline, load_pipeline_config  # noqa: E402
 from artrack.progress import Progress  # noqa: E402
@@ -221,7 +231,10 @@ def main() -> int:
                     help="restart every run from the true pose at this frame index and score the frames from "
                          "there on: the loop's drift from a correct start, without the automatic start-up")
     ap.add_argument("--cache", default="/tmp/artrack_bench")
+    ap.add_argument("--compare", metavar="JSON", default=None,
+                    help="the JSON line (last line) of an earlier run: per-seed MPJPE before -> after, paired")
     args = ap.parse_args()
+    before = load_rows(args.compare) if args.compare else None
     seeds = args.seeds or [args.seed]
     body = load_body_model()
     rows = []
@@ -253,8 +266,47 @@ def main() -> int:
                                      "seed": "mean", "mpjpe_mm": m, "mpjpe_mm_sd": sdv, "limbs_mm": lm})
                         print(f"{name:<11}{n_cam:>4} {est + ' mean':<15}{fb:<9}{m:9.1f}{lm:9.1f}  (MPJPE +- {sdv:.1f} "
                               f"mm over {len(seeds)} seeds)", flush=True)
+    if before is not None:
+        print_comparison(args.compare, before, rows)
     print(json.dumps(rows))
     return 0
+
+
+def _group(row: dict) -> tuple:
+    return row["scene"], row["cameras"], row["estimator"], row["feedback"]
+
+
+def load_rows(path: str) -> list[dict]:
+    """The rows of an earlier run's JSON line (this script's last output line); SystemExit with one
+    line naming the file for anything else."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            lines = [ln for ln in f.read().splitlines() if ln.strip()]
+        rows = json.loads(lines[-1]) if lines else None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise SystemExit(f"closed_loop: --compare {path}: {exc}") from None
+    if not isinstance(rows, list) or not all(isinstance(r, dict) and {"scene", "cameras", "estimator", "feedback",
+                                                                       "seed", "mpjpe_mm"} <= set(r) for r in rows):
+        raise SystemExit(f"closed_loop: --compare {path}: not the JSON line of a closed_loop.py run")
+    return rows
+
+
+def print_comparison(path: str, before: list[dict], after: list[dict]) -> None:
+    """Per group (scene, cameras, estimator, feedback) of this run with paired seeds in ``before``:
+    MPJPE per seed before -> after and the paired summary (``compare_paired``)."""
+    print(f"\ncompared with {path} (MPJPE mm per seed, before -> after)")
+    for group in dict.fromkeys(_group(r) for r in after):
+        b = {r["seed"]: r["mpjpe_mm"] for r in before if _group(r) == group and r["seed"] != "mean"}
+        a = {r["seed"]: r["mpjpe_mm"] for r in after if _group(r) == group and r["seed"] != "mean"}
+        if not any(k in b for k in a):
+            print(f"{' '.join(map(str, group))}: no seed of this run in {path}")
+            continue
+        c = compare_paired(b, a)
+        pairs = "  ".join(f"s{k} {b[k]:.1f} -> {a[k]:.1f}" for k in a if k in b)
+        print(f"{' '.join(map(str, group))}: {pairs}")
+        print(f"  mean {c['mean_before']:.1f} -> {c['mean_after']:.1f}, median {c['median_before']:.1f} -> "
+              f"{c['median_after']:.1f}; {c['better']} better, {c['worse']} worse, {c['ties']} within 1 mm of "
+              f"{c['n']}; sign test p = {c['sign_test_p']:.2f}")
 
 
 if __name__ == "__main__":

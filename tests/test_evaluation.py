@@ -12,6 +12,7 @@ from artrack.bags import write_scene_bag
 from artrack.cameras import Camera
 from artrack.errors import BagError, InputError
 from artrack.evaluation import (
+    compare_paired,
     evaluate,
     format_report,
     label_confusion,
@@ -164,3 +165,22 @@ def test_label_confusion_names_the_nearest_true_part():
     assert out["l_hand"][0] == "l_hand" and out["l_hand"][1] == pytest.approx(0.01)
     assert out["r_hand"][0] == "l_hand" and out["r_hand"][1] == pytest.approx(np.hypot(0.0, 0.58))
     assert label_confusion(observed, {}) == {}
+
+
+def test_compare_paired_counts_seeds_and_sign_tests_them():
+    """compare_paired (bench/closed_loop.py --compare): pairs only the keys with finite values in
+    both runs, counts better / worse beyond tie_mm, and gives the exact two-sided sign test."""
+    before = {1: 100.0, 2: 200.0, 3: 150.0, 4: 120.0, 5: float("nan"), 6: 90.0}
+    after = {1: 80.0, 2: 150.0, 3: 150.5, 4: 160.0, 5: 10.0, 7: 1.0}
+    c = compare_paired(before, after)
+    assert c["n"] == 4 and (c["better"], c["worse"], c["ties"]) == (2, 1, 1)
+    assert c["mean_before"] == pytest.approx(142.5) and c["mean_after"] == pytest.approx(135.125)
+    assert c["median_before"] == pytest.approx(135.0) and c["median_after"] == pytest.approx(150.25)
+    assert c["sign_test_p"] == pytest.approx(1.0)  # 2 of 3: P(|X - 1.5| >= 0.5) under Bin(3, 1/2)
+    ten = compare_paired({k: 100.0 for k in range(10)}, {k: 50.0 for k in range(10)})
+    assert ten["better"] == 10 and ten["sign_test_p"] == pytest.approx(2 * 0.5**10)
+    assert compare_paired({1: 5.0}, {1: 5.5})["sign_test_p"] == 1.0  # all ties
+    with pytest.raises(InputError, match="no key"):
+        compare_paired({1: 1.0}, {2: 1.0})
+    with pytest.raises(InputError, match="tie_mm"):
+        compare_paired({1: 1.0}, {1: 1.0}, tie_mm=-1.0)

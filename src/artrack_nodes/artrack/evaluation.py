@@ -34,6 +34,7 @@ from .errors import InputError, check_output_path
 __all__ = [
     "EvalResult",
     "JointTrack",
+    "compare_paired",
     "evaluate",
     "format_report",
     "label_confusion",
@@ -115,6 +116,33 @@ def label_confusion(observed: dict[str, np.ndarray], truth: dict[str, np.ndarray
         d = np.linalg.norm(T - np.asarray(x, float).reshape(1, -1), axis=1)
         out[lab] = (names[int(np.argmin(d))], float(d[names.index(lab)]))
     return out
+
+
+def compare_paired(before: dict, after: dict, tie_mm: float = 1.0) -> dict:
+    """Paired comparison of two runs of the same scenes (e.g. MPJPE per seed, mm) before and after
+    a change: the closed loop is chaotic (single seeds swing by ±50–100 mm with rounding-level
+    changes), so a change is judged by how many paired runs it improves, not by one run.
+
+    before, after: key (e.g. a seed) -> value, lower is better; only keys in both with finite
+    values are paired. Differences within ``tie_mm`` are ties. Returns n (pairs), mean_before,
+    mean_after, median_before, median_after, better, worse, ties and sign_test_p: the two-sided
+    exact binomial (sign) test of better vs worse under "no effect" (1.0 when all are ties);
+    InputError for fewer than one pair or a negative ``tie_mm``."""
+    from scipy.stats import binomtest
+
+    if not tie_mm >= 0:
+        raise InputError(f"compare_paired: tie_mm must be >= 0, got {tie_mm}")
+    keys = [k for k in before if k in after and math.isfinite(before[k]) and math.isfinite(after[k])]
+    if not keys:
+        raise InputError("compare_paired: no key with a finite value in both runs")
+    b = np.array([float(before[k]) for k in keys])
+    a = np.array([float(after[k]) for k in keys])
+    d = a - b
+    better, worse = int(np.sum(d < -tie_mm)), int(np.sum(d > tie_mm))
+    p = binomtest(better, better + worse, 0.5).pvalue if better + worse else 1.0
+    return {"n": len(keys), "mean_before": float(b.mean()), "mean_after": float(a.mean()),
+            "median_before": float(np.median(b)), "median_after": float(np.median(a)),
+            "better": better, "worse": worse, "ties": len(keys) - better - worse, "sign_test_p": float(p)}
 
 
 @dataclass
