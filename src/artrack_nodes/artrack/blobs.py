@@ -842,9 +842,11 @@ class BlobTracker2D:
                 gated = ds2 <= gs2  # the spatial gate: the ellipse inside the ROI rectangle
                 sels.append(sel[gated])
                 ds2s.append(ds2[gated])
-            self._bootstrap_colours(models, ds2s, [feat[sel] for sel in sels])
+            # colour class -> the colours (n, 3) of the foreground in its labels' cores (colour_core_sigma)
+            core_fg = self._core_colours(models, [feat[sel][ds2 <= cfg.colour_core_sigma**2]
+                                                  for sel, ds2 in zip(sels, ds2s)])
+            self._bootstrap_colours(core_fg)
             dc2s = []
-            core_fg: dict[str, list[np.ndarray]] = {}  # colour class -> its labels' core foreground colours
             for m, sel, ds2 in zip(models, sels, ds2s):
                 f = feat[sel]
                 A, logdet_c = m.colour.whitening(cfg)
@@ -854,8 +856,6 @@ class BlobTracker2D:
                 ok = dc2 <= gc2
                 if m.colour.min_intensity > 0:
                     ok &= f[:, 2] >= m.colour.min_intensity
-                core_fg.setdefault(self.colour_classes[self.labels[m.index]], []).append(
-                    f[ds2 <= _F32(cfg.colour_core_sigma**2)])
                 log_prior = m.log_confidence - 0.5 * math.log(np.linalg.det(m.cov))
                 const = m.weight * log_prior - 0.5 * logdet_c
                 score = _F32(const) - 0.5 * (dc2 + _F32(m.weight) * ds2)
@@ -939,22 +939,23 @@ class BlobTracker2D:
         keep[0] = False
         lab[~keep[ids]] = -1
 
-    def _bootstrap_colours(self, models: list[_ClassModel], ds2s: list[np.ndarray],
-                           feats: list[np.ndarray]) -> None:
+    def _core_colours(self, models: list[_ClassModel], cores: list[np.ndarray]) -> dict[str, np.ndarray]:
+        """Colour class -> the colour features (n, 3) of its labels' core foreground pixels, from
+        ``cores``: per model, the features of its candidate pixels within ``colour_core_sigma``."""
+        parts: dict[str, list[np.ndarray]] = {}
+        for m, f in zip(models, cores, strict=True):
+            parts.setdefault(self.colour_classes[self.labels[m.index]], []).append(f)
+        return {cls: np.concatenate(p, axis=0) for cls, p in parts.items()}
+
+    def _bootstrap_colours(self, core_fg: dict[str, np.ndarray]) -> None:
         """Give each colour class still on its broad start model (no configured default) a
-        robust estimate from the foreground pixels in its labels' cores (within
-        ``colour_core_sigma`` of their priors): median, then mean/cov of the pixels within
-        3 robust sigmas of it. ds2s, feats: per model, the squared spatial Mahalanobis
-        distances (n,) and colour features (n, 3) of its candidate (foreground) pixels."""
-        core2 = self.config.colour_core_sigma**2
-        pending: dict[str, list[np.ndarray]] = {}
-        for m, ds2, f in zip(models, ds2s, feats):
-            cls = self.colour_classes[self.labels[m.index]]
-            if m.colour.learned or cls == SKIN:
+        robust estimate from the foreground in its labels' cores (``core_fg``, see
+        ``_core_colours``): median, then mean/cov of the pixels within 3 robust sigmas of it."""
+        for cls, core in sorted(core_fg.items()):
+            model = self.colour_model(cls)
+            if model.learned or cls == SKIN:
                 continue
-            pending.setdefault(cls, []).append(f[ds2 <= core2])
-        for cls, parts in sorted(pending.items()):
-            c = np.concatenate(parts, axis=0).astype(float)
+            c = core.astype(float)
             if c.shape[0] < self._min_pixels():
                 continue
             cfg = self.config
@@ -964,23 +965,21 @@ class BlobTracker2D:
             keep = np.all(np.abs(c - med) <= 3.0 * (mad + floor), axis=1)
             if np.count_nonzero(keep) < self._min_pixels():
                 continue
-            model = self.colour_model(cls)
             model.mean, model.cov = _colour_stats(c[keep])
             model.learned = True
 
-    def _check_stale_colours(self, core_fg: dict[str, list[np.ndarray]]) -> None:
+    def _check_stale_colours(self, core_fg: dict[str, np.ndarray]) -> None:
         """Count, per learned colour class (not skin), the frames in a row in which the median
-        colour of the foreground in its labels' cores (core_fg: class -> colour features (n, 3)
-        per label) lay outside the model's ``colour_learn_gate``; after ``colour_relearn_frames``
-        such frames the class is marked unlearned, so that the next frame bootstraps it again from
-        the cores (``_bootstrap_colours``). Frames with fewer than ``min_blob_pixels`` core
+        colour of the foreground in its labels' cores (``core_fg``, see ``_core_colours``) lay
+        outside the model's ``colour_learn_gate``; after ``colour_relearn_frames`` such frames the
+        class is marked unlearned, so that the next frame bootstraps it again from the cores
+        (``_bootstrap_colours``). Frames with fewer than ``min_blob_pixels`` core
         foreground pixels (the part hidden, or its prior off the person) do not count."""
         cfg = self.config
         if cfg.colour_relearn_frames <= 0:
             return
-        for cls, parts in sorted(core_fg.items()):
+        for cls, c in sorted(core_fg.items()):
             model = self.colour_models.get(cls)
-            c = np.concatenate(parts, axis=0)
             if cls == SKIN or model is None or not model.learned or c.shape[0] < self._min_pixels():
                 continue
             median = np.median(c, axis=0)[None]
