@@ -134,3 +134,34 @@ def test_node_teardown_is_bounded_and_stacks_dump_on_sigusr1(env, tmp_path):
     text = log.read_text()
     assert code == 1, (code, text)
     assert "in destroy_node" in text, text
+
+
+SILENT_SHUTDOWN_NODE = """
+import threading, time
+import artrack_nodes.common as common
+from rclpy.node import Node
+
+class ShutsDownSilently(Node):
+    def __init__(self):
+        super().__init__("silent")
+        threading.Thread(target=self.later, daemon=True).start()
+
+    def later(self):  # rclpy's signal path: the context goes down, no waiting executor is woken
+        time.sleep(1.0)
+        self.context._Context__context.shutdown()
+        print("context down", flush=True)
+
+raise SystemExit(common.run_node(ShutsDownSilently, "a node whose context is shut down silently", []))
+"""
+
+
+def test_spin_ends_when_the_context_is_shut_down_without_a_wake_up(env, tmp_path):
+    """run_node's spin bounds every wait (common.SPIN_POLL_S): a context shut down while the
+    executor waits, with nothing to wake it (the race in rclpy's SIGTERM handling that left an
+    objects node in rcl_wait after SIGTERM), still ends the node with exit code 0. rclpy.spin
+    waits forever here (checked: it returned only when a signal arrived, 60 s later)."""
+    script = tmp_path / "silent.py"
+    script.write_text(SILENT_SHUTDOWN_NODE)
+    proc = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "context down" in proc.stdout, proc.stdout + proc.stderr

@@ -110,6 +110,25 @@ def print_help(prog: str, doc: str, params: list[tuple[str, Any, str]]) -> None:
 #: participant that deadlocks on destruction must not keep a stopped node alive.
 TEARDOWN_TIMEOUT_S = 30.0
 
+#: s the executor waits at most before it checks again that the context is up. rclpy's SIGTERM /
+#: SIGINT handling wakes a waiting executor and shuts the context down from another thread; when
+#: the executor has gone back to waiting in between, nothing wakes it again and an unbounded wait
+#: (rclpy.spin) never ends: the stop-20 CI failure, a SIGTERMed objects node still in rcl_wait 60 s
+#: later. Bounded waits end such a spin within this time.
+SPIN_POLL_S = 0.5
+
+
+def spin(node: Node, poll_s: float = SPIN_POLL_S) -> None:
+    """rclpy.spin(node), with every wait bounded by ``poll_s``: returns once the node's context is
+    shut down, even by a shutdown that woke nothing (see SPIN_POLL_S)."""
+    executor = rclpy.get_global_executor()
+    executor.add_node(node)
+    try:
+        while executor.context.ok():
+            executor.spin_once(timeout_sec=poll_s)
+    finally:
+        executor.remove_node(node)
+
 
 def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, str]], args=None,
              limits: dict[str, tuple] | None = None, runtime: Iterable[str] | None = None) -> int:
@@ -129,7 +148,7 @@ def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, st
     code = 0
     try:
         node = make()
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except SystemExit as exc:  # a node asking to stop (e.g. the player at the end of the bag)
