@@ -112,6 +112,7 @@ def main() -> int:
     rows = []
     renderer = Renderer(body, scene.cameras, cfg.seed) if args.support else None
     support = {}  # (camera, label) -> [(recall, precision)] over tracked frames, NaN where undefined
+    sources = {}  # label -> {source: support pixels} over views and tracked frames (see support_scores)
     colour_true = {}  # (camera, colour class) -> true pixels' mean colour features, last frame
     for stamp, images in Progress(scene.frames(), total=scene.n_frames, label="label diagnosis"):
         t = (int(stamp) - START_STAMP_NS) * 1e-9 - SCENES[args.scene].get("empty_s", 0.0)
@@ -123,7 +124,7 @@ def main() -> int:
             continue
         theta = pose_at(cfg.motion_name, t, body)
         if renderer is not None:
-            support_scores(pipe, renderer, theta, index, images, labels, support, colour_true)
+            support_scores(pipe, renderer, theta, index, images, labels, support, colour_true, sources)
         T = body.forward_kinematics(theta)
         for lab, b in pipe.skeleton.estimator.last_observed.items():
             if len(b.cameras) >= 3:
@@ -196,14 +197,18 @@ def main() -> int:
               + ("  " + " ".join(f"{v:6.0f}" for v in off) if off else "  -"))
     if renderer is not None:
         summary["support"] = print_support(pipe, labels, support, colour_true)
+        summary["support"]["sources"] = print_sources(labels, sources)
     print(json.dumps(summary))
     return 0
 
 
-def support_scores(pipe, renderer, theta, index, images, labels, support, colour_true) -> None:
+def support_scores(pipe, renderer, theta, index, images, labels, support, colour_true, sources) -> None:
     """Recall and precision of each tracking view's support map per label against the renderer's
     true blob pixels of this frame (appended to ``support``); the true mean colour features of
-    each colour class (``colour_true``)."""
+    each colour class (``colour_true``); per label, the pixels of its support by what the renderer
+    drew there (``sources``: its own true blob pixels 'own', another blob's true pixels by label,
+    a link without a blob or a blob link's other colours by link name, 'room' elsewhere)."""
+    link_names = renderer.body.link_names
     _, label_images = renderer.render(theta, (), 0.0, frame_index=index, labels=True)  # labels only
     for cam, label_image in zip(renderer.cameras, label_images, strict=True):
         tracker = pipe.blob_stages[cam.name].tracker
@@ -223,6 +228,23 @@ def support_scores(pipe, renderer, theta, index, images, labels, support, colour
             support.setdefault((cam.name, lab), []).append(
                 (both / n_true if n_true >= 10 else math.nan, both / n_got if n_got >= 10 else math.nan))
             by_class.setdefault(tracker.colour_classes[lab], []).append(feats[ys, xs])
+        blob_of = np.full(smap.shape, -1, np.int32)  # index in labels of the true blob at a pixel
+        for k, lab in enumerate(labels):
+            xs, ys = truth[lab]
+            blob_of[ys, xs] = k
+        for lab in labels:
+            if lab not in tracker.support_labels:
+                continue
+            got = smap == tracker.support_labels.index(lab)
+            counts = sources.setdefault(lab, {})
+            for k, n in zip(*np.unique(blob_of[got], return_counts=True), strict=True):
+                if k >= 0:
+                    key = "own" if labels[k] == lab else labels[k]
+                    counts[key] = counts.get(key, 0) + int(n)
+            links = label_image[got & (blob_of < 0)]
+            for k, n in zip(*np.unique(links, return_counts=True), strict=True):
+                key = "room" if k == 0 else link_names[k - 1]
+                counts[key] = counts.get(key, 0) + int(n)
         for cls, parts in by_class.items():
             c = np.concatenate(parts)
             if len(c):
@@ -255,6 +277,20 @@ def print_support(pipe, labels, support, colour_true) -> dict:
             print(f"  {c} {cls:<9} model {np.round(model.mean, 3)} true "
                   f"{'-' if true is None else np.round(true, 3)} relearned {tracker.colour_relearned.get(cls, 0)}")
         out["colour_relearned"][c] = dict(tracker.colour_relearned)
+    return out
+
+
+def print_sources(labels, sources, top: int = 5) -> dict:
+    """Print, per label, where its support pixels lie (largest shares first); returns the shares."""
+    print("support pixels by what lies there, % (own = the label's true blob pixels; room = no body part)")
+    out = {}
+    for lab in labels:
+        counts = sources.get(lab, {})
+        total = sum(counts.values())
+        shares = {k: round(100.0 * n / total, 1) for k, n in sorted(counts.items(), key=lambda kv: -kv[1])} \
+            if total else {}
+        out[lab] = shares
+        print(f"  {lab:<9}" + "  ".join(f"{k} {v:.0f}" for k, v in list(shares.items())[:top]))
     return out
 
 
