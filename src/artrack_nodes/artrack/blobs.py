@@ -32,11 +32,7 @@ taken into the background once it has stayed unchanged for
 ``background_ghost_edge_ratio`` times stronger gradients in the background model
 than in the image (the outline of something that has left, not of something
 that is there) becomes background at once, unless it is in a tracked blob's support
-(a person standing still in front of a textured floor fails the edge test too); with
-``ghost_anchor`` (e.g. 'torso'; off by default) a labelled region detached from that label's
-pixels (the trunk) is tested too, so that a label settled on a detached ghost (a hand prior
-on the skin-coloured floor where the person stood while the background seeded) does not keep
-it from ever healing.
+(a person standing still in front of a textured floor fails the edge test too).
 
 Blob classes. Each tracked label k is a Gaussian over ``o`` with a spatial part
 (mean (2,), covariance (2, 2), px) and a colour part (mean (3,), covariance
@@ -240,15 +236,7 @@ class BlobTrackerConfig:
     #: the person stood while the background seeded, another person's hand); '' = no such test (default:
     #: it helped on some synthetic seeds and locked the loop onto a wrong start on others, README Status)
     connected_to: str = ""
-    #: labelled foreground regions not connected to this label's pixels (gaps up to ``connected_gap_px``),
-    #: unchanged as a whole, are tested for being ghosts as unlabelled ones are (``background_ghost_frames``):
-    #: a label settled on a detached ghost otherwise keeps it from healing; '' (or a label the body has
-    #: not) = labelled regions are never ghosts. Off by default: 'torso' healed such ghosts sooner
-    #: (hands on the room 46 -> 41 % of their support on seed 6) but made the closed loop worse on
-    #: 15 of 30 seeds and better on 9 (README Status)
-    ghost_anchor: str = ""
     #: gaps up to this many px (full resolution) in the foreground count as connected for ``connected_to``
-    #: and ``ghost_anchor``
     #: (thin limbs broken by the median filter or by clothing that matches the background)
     connected_gap_px: float = 2.0
     #: at start-up, report at most this many skin blobs (largest first)
@@ -319,9 +307,8 @@ class BlobTrackerConfig:
             raise bad("work_scale", "must be in (0, 1]")
         if not -0.95 <= self.skin_rg_correlation <= 0.95:
             raise bad("skin_rg_correlation", "must be in [-0.95, 0.95]")
-        for name in ("connected_to", "ghost_anchor"):
-            if not isinstance(getattr(self, name), str):
-                raise bad(name, "must be a label name or ''")
+        if not isinstance(self.connected_to, str):
+            raise bad("connected_to", "must be a label name or ''")
         non_negative = ("connected_gap_px", "skin_min_intensity", "startup_skin_max_fraction", "temporal_velocity",
                         "temporal_motion_px", "min_component_fraction", "background_ghost_edge_ratio",
                         "prior_confidence_inflation")
@@ -419,11 +406,6 @@ def _median_of_sorted(stack: list[np.ndarray]) -> np.ndarray:
     return cv2.addWeighted(stack[n // 2 - 1], 0.5, stack[n // 2], 0.5, 0.0, dtype=cv2.CV_32F)
 
 
-#: share of a detached labelled region's pixels that may have changed recently for it still to be
-#: tested for being a ghost (BackgroundModel.update)
-_DETACHED_MOVING = 0.1
-
-
 class BackgroundModel:
     """Per-pixel Gaussian background in B, G, R (module docstring, "Background").
 
@@ -489,7 +471,7 @@ class BackgroundModel:
         self.seed = []
 
     def update(self, image: np.ndarray, image_f: np.ndarray, background: np.ndarray,
-               unexplained: np.ndarray, detached: np.ndarray | None = None) -> None:
+               unexplained: np.ndarray) -> None:
         """Adapt the model after ``foreground`` (module docstring, "Background").
 
         image: (H, W, 3) uint8 and image_f its float32 copy; background: (H, W) bool pixels
@@ -497,10 +479,7 @@ class BackgroundModel:
         foreground pixels in no tracked blob's support (rate ``background_ghost_rate``; taken
         into the background at once after ``background_static_frames`` unchanged frames).
         Any unexplained foreground region unchanged for ``background_ghost_frames`` frames
-        that is a ghost (``_ghosts``) is taken into the background at once; so is any
-        8-connected region of ``detached`` (H, W) bool (labelled foreground detached from the
-        trunk, see ``ghost_anchor``) that is a ghost and unchanged as a whole (all but
-        _DETACHED_MOVING of its pixels; a moving part's uniform inside is unchanged too).
+        that is a ghost (``_ghosts``) is taken into the background at once.
         """
         previous, self._previous = self._previous, image
         if not self.ready or self._diff2 is None:
@@ -536,23 +515,11 @@ class BackgroundModel:
             # a tracked blob's support is never a ghost: a person standing still in front of a
             # textured background (floor tiles) otherwise fails the edge-ratio test and is erased
             candidates = (self.static >= cfg.background_ghost_frames) & unexplained
-            if detached is not None and detached.any():
-                candidates |= self._static_regions(detached)
             if candidates.any():
                 absorb |= self._ghosts(candidates, ~background, image_f)
         if absorb.any():
             self.mean[absorb] = image_f[absorb]
             self.static[absorb] = 0
-
-    def _static_regions(self, mask: np.ndarray) -> np.ndarray:
-        """(H, W) bool: the 8-connected regions of ``mask`` unchanged for ``background_ghost_frames``
-        frames in all but a _DETACHED_MOVING share of their pixels."""
-        n, comp = cv2.connectedComponents(np.ascontiguousarray(mask).view(np.uint8), connectivity=8)
-        size = np.bincount(comp.ravel(), minlength=n)
-        still = np.bincount(comp[self.static >= self.config.background_ghost_frames], minlength=n)
-        keep = still >= (1.0 - _DETACHED_MOVING) * size
-        keep[0] = False
-        return keep[comp]
 
     def _ghosts(self, candidates: np.ndarray, fg: np.ndarray, image_f: np.ndarray) -> np.ndarray:
         """(H, W) bool: the 8-connected regions of ``candidates`` (static foreground) whose
@@ -772,10 +739,7 @@ class BlobTracker2D:
         else:
             self.mode = "tracking"
             blobs, explained = self._track(img, fg, models)
-        detached = None
-        if self.mode == "tracking" and self.config.ghost_anchor:
-            detached = self._detached(fg, self.config.ghost_anchor)
-        self.background.update(img, img_f, ~fg, fg & ~explained, detached)
+        self.background.update(img, img_f, ~fg, fg & ~explained)
         t1 = time.perf_counter()
         track = self.timings_ms
         # per-stage wall time of this frame, ms: classification and statistics (set by _track),
@@ -974,24 +938,6 @@ class BlobTracker2D:
         keep = per >= 0.25 * per.max()
         keep[0] = False
         lab[~keep[ids]] = -1
-
-    def _detached(self, fg: np.ndarray, anchor: str) -> np.ndarray:
-        """(H, W) bool: the foreground whose 8-connected component (gaps up to ``connected_gap_px``
-        closed) holds none of this frame's ``anchor`` pixels; none when the anchor has no pixels."""
-        support = self._support_work
-        if anchor not in self.support_labels:
-            return np.zeros_like(fg)
-        on_anchor = support == self.support_labels.index(anchor)
-        if not on_anchor.any():
-            return np.zeros_like(fg)
-        mask = np.ascontiguousarray(fg).view(np.uint8)
-        gap = int(round(self.config.connected_gap_px * self._scale()[0]))
-        if gap > 0:
-            mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1)))
-        n, comp = cv2.connectedComponents(mask, connectivity=8)
-        anchored = np.bincount(comp[on_anchor], minlength=n) > 0
-        anchored[0] = True  # not foreground
-        return fg & ~anchored[comp]
 
     def _core_colours(self, models: list[_ClassModel], cores: list[np.ndarray]) -> dict[str, np.ndarray]:
         """Colour class -> the colour features (n, 3) of its labels' core foreground pixels, from
