@@ -11,6 +11,12 @@ rays, a few Gauss–Newton steps minimise ``Σ_i (u_i - π_i(X))ᵀ Σ_i⁻¹ (u
 the returned covariance is the inverse information ``(Σ_i J_iᵀ Σ_i⁻¹ J_i)⁻¹`` at the
 solution (J_i = dπ_i/dX, 2x3).
 
+The blob's shape in 3-D (:func:`blob_extent`): its 2-D covariances are projections of the
+part's 3-D second moments S, ``C_i ≈ J_i S J_iᵀ`` (ALGORITHMS.md §1, "Inverse observation
+model", read backwards); three or more views determine S by linear least squares (two do not:
+with d_1, d_2 their viewing rays, S + c (d_1 d_2ᵀ + d_2 d_1ᵀ) projects alike in both). A torso's
+widest horizontal axis is the shoulder line, whose heading the blob means cannot give.
+
 One view constrains only the ray (rank-2 information). Then a prior Blob3D
 (e.g. the skeleton's prediction) is required and fused as one more Gaussian in
 information form, so the depth along the ray comes from the prior; without a
@@ -37,6 +43,7 @@ from .errors import InputError
 from .types import Blob2D, Blob3D
 
 __all__ = [
+    "blob_extent",
     "midpoint",
     "triangulate_blob",
     "triangulate_blobs",
@@ -318,3 +325,32 @@ def triangulate_blobs(
     if not problems:
         return {}
     return {blob.label: blob for blob in _solve(problems, iterations) if blob is not None}
+
+
+def blob_extent(observations: Sequence[tuple[Camera, Blob2D]], point: np.ndarray) -> np.ndarray | None:
+    """The 3-D second moments S (3, 3) m² of a blob at ``point`` (3,) m (world) whose projections
+    best match its 2-D covariances: ``Σ_i ‖(J_i S J_iᵀ − C_i) / tr C_i‖²`` minimised over symmetric
+    S (linear least squares; J_i = dπ_i/dX at the point, so each view's relative shape counts, near
+    or far), eigenvalues clipped at 0. None with fewer than three finite views in front of the point
+    (two leave one direction of S undetermined, see the module docstring)."""
+    X = np.asarray(point, dtype=float).reshape(3)
+    rows, rhs = [], []
+    for cam, blob in observations:
+        C = np.asarray(blob.cov, dtype=float).reshape(2, 2)
+        if not _finite(blob) or float(cam.R[2] @ X + cam.t[2]) <= 0.0:
+            continue
+        w = 1.0 / max(float(np.trace(C)), 1e-9)
+        J = cam.project_jacobian(X[None])[1][0]
+        for a, c in ((0, 0), (1, 1), (0, 1)):
+            # C[a, c] = Σ_pq J[a, p] J[c, q] S[p, q], unknowns S00 S11 S22 S01 S02 S12
+            rows.append(w * np.array([J[a, 0] * J[c, 0], J[a, 1] * J[c, 1], J[a, 2] * J[c, 2],
+                                      J[a, 0] * J[c, 1] + J[a, 1] * J[c, 0],
+                                      J[a, 0] * J[c, 2] + J[a, 2] * J[c, 0],
+                                      J[a, 1] * J[c, 2] + J[a, 2] * J[c, 1]]))
+            rhs.append(w * C[a, c])
+    if len(rows) < 9:
+        return None
+    x = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+    S = np.array([[x[0], x[3], x[4]], [x[3], x[1], x[5]], [x[4], x[5], x[2]]])
+    vals, vecs = np.linalg.eigh(S)
+    return (vecs * np.maximum(vals, 0.0)) @ vecs.T
