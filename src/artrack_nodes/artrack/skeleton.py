@@ -20,6 +20,15 @@ Kinds
     the initial fits): a person standing or walking on the floor keeps the lower of the
     body's lowest rest points (the ankles) at its rest height above z = ``fit.floor_z_m``
     and neither below it — legs whose blobs are missing or mislabelled are not pulled up.
+    Heading cue from the torso's shape (``fit.axis_*``, baseline): the
+    3-D second moments that explain the torso's 2-D blob covariances in three or more views
+    (``triangulation.blob_extent``) have their widest horizontal axis along the shoulders;
+    two points on the torso's lateral axis are pulled across onto that line, the nearer of its
+    two directions (heading mod π; the blob means of torso and head hardly constrain it).
+    Left/right data association (``fit.mirror_groups``, baseline): the two trouser legs share
+    one colour class, so where they pass each other the 2-D labels follow the priors and swap;
+    each frame the body is fitted again with the l_/r_ blobs of each group exchanged (default:
+    one group, the whole legs) and the fit of lowest (robust) cost wins.
 
 ``'kinematic'`` — the paper's cheap variant (§2.3, "15 % CPU"): one
     constant-acceleration Kalman filter per blob (paper Eq. 7; ``kalman.py``)
@@ -116,7 +125,7 @@ from .constraints import (
 from .errors import InputError
 from .kalman import ConstantAccelerationKF
 from .lie import inverse_se3, log_se3, skew
-from .triangulation import midpoint, triangulate_blob, triangulate_blobs
+from .triangulation import blob_extent, midpoint, triangulate_blob, triangulate_blobs
 from .types import (
     STATUS_INITIALIZING,
     STATUS_LOST,
@@ -143,6 +152,11 @@ __all__ = [
 FOREGROUND = "foreground"
 SKIN = "skin"
 KINDS = ("baseline", "kinematic", "dynamic")
+#: half length (m) of the lever along the axis link's lateral axis on which the horizontal-axis
+#: cue acts (the cue's sigma in m is this times ``fit.axis_sigma_rad``)
+_AXIS_LEVER_M = 0.15
+#: floor (m, 1 sigma) of the narrower horizontal extent in the ``fit.axis_min_ratio`` test
+_AXIS_FLOOR_M = 0.03
 
 
 # =========================================================================== configuration
@@ -194,6 +208,10 @@ class FitConfig:
     edge_min_found: int = 8
     ground_sigma_m: float = 0.0
     floor_z_m: float = 0.0
+    axis_label: str = "torso"
+    axis_sigma_rad: float = 0.35
+    axis_min_ratio: float = 1.3
+    mirror_groups: list = field(default_factory=lambda: [["thigh", "shin"]])
 
 
 @dataclass
@@ -317,6 +335,10 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
             raise InputError(f"skeleton config: field '{name}' must be >= 0 (got {value!r})")
     if not 1e-12 <= out.fit.tolerance < 1.0:
         raise InputError(f"skeleton config: field 'fit.tolerance' must be in [1e-12, 1) (got {out.fit.tolerance!r})")
+    groups = out.fit.mirror_groups
+    if not all(isinstance(g, (list, tuple)) and g and all(isinstance(p, str) and p for p in g) for g in groups):
+        raise InputError("skeleton config: field 'fit.mirror_groups' must be a list of lists of part names "
+                         "(without the side prefix, e.g. [[thigh, shin], [shin]])")
     if out.measurement.blob_cov not in ("shape+state", "state"):
         raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
     return out
@@ -754,6 +776,11 @@ class _Estimator:
         #: soft floor contact of the body fits (baseline frames, initialisation), or None
         self._ground = GroundContact.from_body(body, f.ground_sigma_m, f.floor_z_m) if f.ground_sigma_m > 0 else None
         self._reach = self._arm_reach()
+        sided = {lab[2:] for lab in body.blob_labels if lab[:2] == "l_" and "r_" + lab[2:] in body.blob_labels}
+        unknown = sorted({p for g in f.mirror_groups for p in g} - sided)
+        if unknown:
+            raise InputError(f"skeleton config: field 'fit.mirror_groups' names part '{unknown[0]}', which has "
+                             f"no l_/r_ blob pair (pairs: {', '.join(sorted(sided))})")
         pr = self.cfg.prior
         unknown = sorted(set(pr.rest_sigma_by_link) - set(body.link_names))
         if unknown:
@@ -778,6 +805,7 @@ class _Estimator:
         self.missed = 0
         self.quality = 0.0
         self.last_observed: dict[str, Blob3D] = {}
+        self._axis: tuple[np.ndarray, np.ndarray] | None = None  # this frame's horizontal-axis cue
         self.timings_ms: dict[str, float] = {}  # per-stage ms of the last update
         self._start_verification()
         self._verify_left = 0
@@ -824,7 +852,49 @@ class _Estimator:
     def _triangulate(self, blobs_by_camera, priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
         labelled = {c: [b for b in bl if b.label in self.labels] for c, bl in blobs_by_camera.items()}
         obs = triangulate_blobs(labelled, self.cameras, priors)
-        return {k: v for k, v in obs.items() if k in self.labels}
+        obs = {k: v for k, v in obs.items() if k in self.labels}
+        self._axis = None
+        f = self.cfg.fit
+        blob = obs.get(f.axis_label)
+        if f.axis_sigma_rad > 0 and blob is not None:
+            views = [(self.cameras[c], b) for c, bl in labelled.items() for b in bl
+                     if b.label == f.axis_label and c in blob.cameras]
+            self._axis = self._horizontal_axis(blob, blob_extent(views, blob.mean))
+        return obs
+
+    def _horizontal_axis(self, blob: Blob3D, extent: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """(centre (3,), unit horizontal axis (3,)) of the widest horizontal extent of the
+        ``fit.axis_label`` blob, or None when its horizontal extent is too round to tell
+        (axes ratio below ``fit.axis_min_ratio``)."""
+        if extent is None:
+            return None
+        vals, vecs = np.linalg.eigh(extent[:2, :2])
+        if vals[1] <= 0 or vals[1] < self.cfg.fit.axis_min_ratio**2 * max(vals[0], _AXIS_FLOOR_M**2):
+            return None
+        return np.asarray(blob.mean, float), np.array([vecs[0, 1], vecs[1, 1], 0.0])
+
+    def _axis_targets(self, link_rotations: np.ndarray) -> list[PointTarget]:
+        """The heading cue of the axis blob's shape (``fit.axis_*``; see :func:`blob_extent`): two
+        points ±_AXIS_LEVER_M along the link's lateral (y) axis through its blob centre are pulled,
+        across the observed widest horizontal axis only, onto that axis (sigma ``axis_sigma_rad``
+        as an angle). The axis has no direction; it takes the one nearer the link's lateral axis in
+        ``link_rotations`` (L, 3, 3) world_from_link (the current pose), so it turns the heading
+        towards the nearer of the two alignments, never by π."""
+        if self._axis is None:
+            return []
+        centre, axis = self._axis
+        f = self.cfg.fit
+        k = self.kin.blob_index[f.axis_label]
+        link = int(self.kin.blob_links[k])
+        lateral = link_rotations[link][:, 1]
+        if float(axis @ lateral) < 0.0:
+            axis = -axis
+        across = np.array([-axis[1], axis[0], 0.0])
+        info = np.outer(across, across) / (2.0 * (_AXIS_LEVER_M * f.axis_sigma_rad) ** 2)
+        lever = np.array([0.0, _AXIS_LEVER_M, 0.0])
+        local = self.kin.blob_local[k]
+        return [PointTarget(link, local + sign * lever, centre + sign * _AXIS_LEVER_M * axis, info)
+                for sign in (1.0, -1.0)]
 
     def _triangulation_priors(self, stamp_ns: int) -> dict[str, Blob3D] | None:
         return None
@@ -1215,17 +1285,37 @@ class BaselineEstimator(_Estimator):
     def _triangulation_priors(self, stamp_ns):
         return {b.label: b for b in self._predict(stamp_ns).blobs}
 
+    def _mirror_hypotheses(self, obs: Mapping[str, Blob3D]) -> list[dict[str, Blob3D]]:
+        """This frame's blobs with the left and right blobs of each ``fit.mirror_groups`` group
+        exchanged (groups whose parts are not seen on both sides are skipped): the other
+        data associations of the legs, which the body fit tests against the labelled one."""
+        out = []
+        for group in self.cfg.fit.mirror_groups:
+            pairs = [("l_" + part, "r_" + part) for part in group]
+            pairs = [(lft, rgt) for lft, rgt in pairs if lft in obs and rgt in obs]
+            if not pairs:
+                continue
+            mirrored = dict(obs)
+            for lft, rgt in pairs:
+                a, b = obs[lft], obs[rgt]
+                mirrored[lft] = Blob3D(lft, b.mean, b.cov, b.cameras)
+                mirrored[rgt] = Blob3D(rgt, a.mean, a.cov, a.cameras)
+            out.append(mirrored)
+        return out
+
     def _step(self, stamp_ns, obs):
         f = self.cfg.fit
         dt = (stamp_ns - self.stamp_ns) * 1e-9
         targets = self._blob_targets(obs)
+        axis = self._axis_targets(self.poses[1]) if targets else []
+        targets += axis
         edges = getattr(self, "_edges", None)
         goals = LinkGoals.from_edges(edges, f.edge_sigma_px, f.edge_min_found) if edges is not None else None
         if not targets and (goals is None or not len(goals.links)):
             # Nothing observed: the pose coasts (a fit to the priors alone leaves the root free to wander).
             self._set_pose(self.theta, self.cov_theta, self.poses, dt)
             return
-        theta, _, cov = fit_pose(
+        theta, cost, cov = fit_pose(
             self.body,
             self.theta,
             targets,
@@ -1239,6 +1329,14 @@ class BaselineEstimator(_Estimator):
             self._ground,
             tolerance=f.tolerance,
         )
+        for mirrored in self._mirror_hypotheses(obs):
+            theta_m, cost_m, cov_m = fit_pose(
+                self.body, self.theta, self._blob_targets(mirrored) + axis, self.kin.rest, self.rest_sigma_dof,
+                self.theta, f.previous_sigma_rad, f.max_nfev, f.robust_scale, goals, self._ground,
+                tolerance=f.tolerance,
+            )
+            if cost_m < cost:
+                theta, cost, cov = theta_m, cost_m, cov_m
         self._set_pose(theta, cov, self.poses, dt)
 
     def _estimate(self, stamp_ns):
