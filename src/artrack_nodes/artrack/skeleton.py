@@ -805,7 +805,6 @@ class _Estimator:
         self.missed = 0
         self.quality = 0.0
         self.last_observed: dict[str, Blob3D] = {}
-        self._axis: tuple[np.ndarray, np.ndarray] | None = None  # this frame's horizontal-axis cue
         self.timings_ms: dict[str, float] = {}  # per-stage ms of the last update
         self._start_verification()
         self._verify_left = 0
@@ -852,49 +851,7 @@ class _Estimator:
     def _triangulate(self, blobs_by_camera, priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
         labelled = {c: [b for b in bl if b.label in self.labels] for c, bl in blobs_by_camera.items()}
         obs = triangulate_blobs(labelled, self.cameras, priors)
-        obs = {k: v for k, v in obs.items() if k in self.labels}
-        self._axis = None
-        f = self.cfg.fit
-        blob = obs.get(f.axis_label)
-        if f.axis_sigma_rad > 0 and blob is not None:
-            views = [(self.cameras[c], b) for c, bl in labelled.items() for b in bl
-                     if b.label == f.axis_label and c in blob.cameras]
-            self._axis = self._horizontal_axis(blob, blob_extent(views, blob.mean))
-        return obs
-
-    def _horizontal_axis(self, blob: Blob3D, extent: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
-        """(centre (3,), unit horizontal axis (3,)) of the widest horizontal extent of the
-        ``fit.axis_label`` blob, or None when its horizontal extent is too round to tell
-        (axes ratio below ``fit.axis_min_ratio``)."""
-        if extent is None:
-            return None
-        vals, vecs = np.linalg.eigh(extent[:2, :2])
-        if vals[1] <= 0 or vals[1] < self.cfg.fit.axis_min_ratio**2 * max(vals[0], _AXIS_FLOOR_M**2):
-            return None
-        return np.asarray(blob.mean, float), np.array([vecs[0, 1], vecs[1, 1], 0.0])
-
-    def _axis_targets(self, link_rotations: np.ndarray) -> list[PointTarget]:
-        """The heading cue of the axis blob's shape (``fit.axis_*``; see :func:`blob_extent`): two
-        points ±_AXIS_LEVER_M along the link's lateral (y) axis through its blob centre are pulled,
-        across the observed widest horizontal axis only, onto that axis (sigma ``axis_sigma_rad``
-        as an angle). The axis has no direction; it takes the one nearer the link's lateral axis in
-        ``link_rotations`` (L, 3, 3) world_from_link (the current pose), so it turns the heading
-        towards the nearer of the two alignments, never by π."""
-        if self._axis is None:
-            return []
-        centre, axis = self._axis
-        f = self.cfg.fit
-        k = self.kin.blob_index[f.axis_label]
-        link = int(self.kin.blob_links[k])
-        lateral = link_rotations[link][:, 1]
-        if float(axis @ lateral) < 0.0:
-            axis = -axis
-        across = np.array([-axis[1], axis[0], 0.0])
-        info = np.outer(across, across) / (2.0 * (_AXIS_LEVER_M * f.axis_sigma_rad) ** 2)
-        lever = np.array([0.0, _AXIS_LEVER_M, 0.0])
-        local = self.kin.blob_local[k]
-        return [PointTarget(link, local + sign * lever, centre + sign * _AXIS_LEVER_M * axis, info)
-                for sign in (1.0, -1.0)]
+        return {k: v for k, v in obs.items() if k in self.labels}
 
     def _triangulation_priors(self, stamp_ns: int) -> dict[str, Blob3D] | None:
         return None
@@ -1264,6 +1221,57 @@ class BaselineEstimator(_Estimator):
 
     kind = "baseline"
 
+    def reset(self) -> None:
+        super().reset()
+        self._axis: tuple[np.ndarray, np.ndarray] | None = None  # this frame's horizontal-axis cue
+
+    def _triangulate(self, blobs_by_camera, priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
+        """As the base class, and this frame's torso-shape heading cue (``fit.axis_*``) from the
+        axis label's 2-D blobs in the views that triangulated it."""
+        obs = super()._triangulate(blobs_by_camera, priors)
+        self._axis = None
+        f = self.cfg.fit
+        blob = obs.get(f.axis_label)
+        if f.axis_sigma_rad > 0 and blob is not None:
+            views = [(self.cameras[c], b) for c, bl in blobs_by_camera.items() for b in bl
+                     if b.label == f.axis_label and c in blob.cameras]
+            self._axis = self._horizontal_axis(blob, blob_extent(views, blob.mean))
+        return obs
+
+    def _horizontal_axis(self, blob: Blob3D, extent: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """(centre (3,), unit horizontal axis (3,)) of the widest horizontal extent of the
+        ``fit.axis_label`` blob, or None when its horizontal extent is too round to tell
+        (axes ratio below ``fit.axis_min_ratio``)."""
+        if extent is None:
+            return None
+        vals, vecs = np.linalg.eigh(extent[:2, :2])
+        if vals[1] <= 0 or vals[1] < self.cfg.fit.axis_min_ratio**2 * max(vals[0], _AXIS_FLOOR_M**2):
+            return None
+        return np.asarray(blob.mean, float), np.array([vecs[0, 1], vecs[1, 1], 0.0])
+
+    def _axis_targets(self, link_rotations: np.ndarray) -> list[PointTarget]:
+        """The heading cue of the axis blob's shape (``fit.axis_*``; see :func:`blob_extent`): two
+        points ±_AXIS_LEVER_M along the link's lateral (y) axis through its blob centre are pulled,
+        across the observed widest horizontal axis only, onto that axis (sigma ``axis_sigma_rad``
+        as an angle). The axis has no direction; it takes the one nearer the link's lateral axis in
+        ``link_rotations`` (L, 3, 3) world_from_link (the current pose), so it turns the heading
+        towards the nearer of the two alignments, never by π."""
+        if self._axis is None:
+            return []
+        centre, axis = self._axis
+        f = self.cfg.fit
+        k = self.kin.blob_index[f.axis_label]
+        link = int(self.kin.blob_links[k])
+        lateral = link_rotations[link][:, 1]
+        if float(axis @ lateral) < 0.0:
+            axis = -axis
+        across = np.array([-axis[1], axis[0], 0.0])
+        info = np.outer(across, across) / (2.0 * (_AXIS_LEVER_M * f.axis_sigma_rad) ** 2)
+        lever = np.array([0.0, _AXIS_LEVER_M, 0.0])
+        local = self.kin.blob_local[k]
+        return [PointTarget(link, local + sign * lever, centre + sign * _AXIS_LEVER_M * axis, info)
+                for sign in (1.0, -1.0)]
+
     def _initialise(self, stamp_ns, theta, obs):
         self._set_pose(theta, np.eye(self.body.n_dof) * 1e-2, None, 0.0)
 
@@ -1291,16 +1299,11 @@ class BaselineEstimator(_Estimator):
         data associations of the legs, which the body fit tests against the labelled one."""
         out = []
         for group in self.cfg.fit.mirror_groups:
-            pairs = [("l_" + part, "r_" + part) for part in group]
-            pairs = [(lft, rgt) for lft, rgt in pairs if lft in obs and rgt in obs]
-            if not pairs:
-                continue
-            mirrored = dict(obs)
-            for lft, rgt in pairs:
-                a, b = obs[lft], obs[rgt]
-                mirrored[lft] = Blob3D(lft, b.mean, b.cov, b.cameras)
-                mirrored[rgt] = Blob3D(rgt, a.mean, a.cov, a.cameras)
-            out.append(mirrored)
+            swapped = {side + part for part in group if "l_" + part in obs and "r_" + part in obs
+                       for side in ("l_", "r_")}
+            if swapped:  # each label takes its mirror's blob (the labels keep obs' order)
+                source = {k: obs[_mirror_label(k)] if k in swapped else obs[k] for k in obs}
+                out.append({k: Blob3D(k, b.mean, b.cov, b.cameras) for k, b in source.items()})
         return out
 
     def _step(self, stamp_ns, obs):
