@@ -217,33 +217,30 @@ def support_scores(pipe, renderer, theta, index, images, labels, support, colour
         smap = tracker.support_map
         truth = renderer.blob_pixels(images[cam.name], label_image)
         feats = colour_features(images[cam.name])
-        by_class: dict[str, list[np.ndarray]] = {}
-        for lab in labels:
-            true = np.zeros(smap.shape, bool)
+        blob_of = np.full(smap.shape, -1, np.int32)  # index in labels of the true blob at a pixel (disjoint)
+        for k, lab in enumerate(labels):
             xs, ys = truth[lab]
-            true[ys, xs] = True
+            blob_of[ys, xs] = k
+        by_class: dict[str, list[np.ndarray]] = {}
+        for k, lab in enumerate(labels):
+            true = blob_of == k
             got = smap == tracker.support_labels.index(lab) if lab in tracker.support_labels else np.zeros_like(true)
             both = np.count_nonzero(true & got)
             n_true, n_got = np.count_nonzero(true), np.count_nonzero(got)
             support.setdefault((cam.name, lab), []).append(
                 (both / n_true if n_true >= 10 else math.nan, both / n_got if n_got >= 10 else math.nan))
-            by_class.setdefault(tracker.colour_classes[lab], []).append(feats[ys, xs])
-        blob_of = np.full(smap.shape, -1, np.int32)  # index in labels of the true blob at a pixel
-        for k, lab in enumerate(labels):
             xs, ys = truth[lab]
-            blob_of[ys, xs] = k
-        for lab in labels:
+            by_class.setdefault(tracker.colour_classes[lab], []).append(feats[ys, xs])
             if lab not in tracker.support_labels:
                 continue
-            got = smap == tracker.support_labels.index(lab)
             counts = sources.setdefault(lab, {})
-            for k, n in zip(*np.unique(blob_of[got], return_counts=True), strict=True):
-                if k >= 0:
-                    key = "own" if labels[k] == lab else labels[k]
+            for j, n in zip(*np.unique(blob_of[got], return_counts=True), strict=True):
+                if j >= 0:
+                    key = "own" if j == k else labels[j]
                     counts[key] = counts.get(key, 0) + int(n)
             links = label_image[got & (blob_of < 0)]
-            for k, n in zip(*np.unique(links, return_counts=True), strict=True):
-                key = "room" if k == 0 else link_names[k - 1]
+            for j, n in zip(*np.unique(links, return_counts=True), strict=True):
+                key = "room" if j == 0 else link_names[j - 1]
                 counts[key] = counts.get(key, 0) + int(n)
         for cls, parts in by_class.items():
             c = np.concatenate(parts)
