@@ -600,6 +600,37 @@ def test_analytic_and_numeric_jacobians_give_the_same_fit(body):
         fit_pose(body, start, targets, jacobian="exact")
 
 
+def test_fit_pose_over_some_dofs_holds_the_others(body):
+    """fit_pose(free_dofs=...): the held dofs stay at the start exactly; when the truth differs from
+    the start only in the free dofs (the legs' hips and knees), the conditional fit reaches it; with
+    the root held 0.1 m off, its cost stays far above the full fit's (which puts the root back)."""
+    rng = np.random.default_rng(4)
+    start = body.clip(body.rest_pose() + rng.normal(0.0, 0.2, body.n_dof))
+    start[2] = 0.95
+    legs = [body.link_names.index(n) for n in ("l_thigh", "l_shin", "r_thigh", "r_shin")]
+    others = [0] + [int(i) for i in body.blob_links if i not in legs]  # the root and the other blobs' links
+    free = np.flatnonzero(body.dof_moves_link[legs].any(0) & ~body.dof_moves_link[others].any(0))
+    assert 0 < free.size < body.n_dof - 6
+    truth = start.copy()
+    truth[free] = body.clip(start + rng.normal(0.0, 0.3, body.n_dof))[free]
+    means, _ = body.blob_gaussians(truth)
+    T = body.forward_kinematics(truth)
+    targets = [PointTarget(int(link), (np.linalg.inv(T[link]) @ np.append(means[k], 1.0))[:3], means[k],
+                           np.eye(3) / 0.02**2) for k, link in enumerate(body.blob_links)]
+    kw = dict(max_nfev=200, tolerance=1e-10)
+    theta_c, cost_c, cov_c = fit_pose(body, start, targets, free_dofs=free, **kw)
+    held = np.setdiff1d(np.arange(body.n_dof), free)
+    np.testing.assert_array_equal(theta_c[held], start[held])
+    assert np.all(cov_c[held] == 0) and np.all(cov_c[:, held] == 0)
+    np.testing.assert_allclose(body.joint_positions(theta_c), body.joint_positions(truth), atol=1e-4)
+    assert cost_c < 1e-8
+    moved = truth.copy()
+    moved[0] += 0.1  # the root held 0.1 m off: only the full fit can put it back
+    _, cost_held, _ = fit_pose(body, moved, targets, free_dofs=free, **kw)
+    _, cost_full, _ = fit_pose(body, moved, targets, **kw)
+    assert cost_full < 1e-3 and cost_held > 1.0, (cost_full, cost_held)
+
+
 def test_kinematic_keeps_fast_limbs_when_the_wave_starts(body, cameras):
     """ALGORITHMS.md §1 (Kalman filters as goals): from exact blobs (1 px noise) the kinematic
     tracker must follow the default motion where the walk stops and both hands start waving

@@ -9,7 +9,7 @@ import pytest
 
 from artrack.cameras import Camera
 from artrack.errors import InputError
-from artrack.triangulation import blob_extent, midpoint, triangulate_blob, triangulate_blobs
+from artrack.triangulation import associate_views, blob_extent, midpoint, triangulate_blob, triangulate_blobs
 from artrack.types import Blob2D, Blob3D
 
 K = np.array([[900.0, 0.0, 639.5], [0.0, 910.0, 359.5], [0.0, 0.0, 1.0]])
@@ -215,10 +215,10 @@ def test_batched_gauss_newton_equals_one_point_at_a_time():
     prior_mean = X_true + rng.normal(0.0, 0.1, (n, 3))
     prior_info = np.where(rng.random(n)[:, None, None] < 0.5, np.eye(3) / 0.2**2, 0.0)
     X0 = X_true + rng.normal(0.0, 2.0, (n, 3))
-    X, H = _gauss_newton(X0, cams, uvs, infos, prior_mean, prior_info, 8)
+    X, H, _ = _gauss_newton(X0, cams, uvs, infos, prior_mean, prior_info, 8)
     for b in range(n):
-        Xb, Hb = _gauss_newton(X0[b:b + 1], cams, uvs[b:b + 1], infos[b:b + 1], prior_mean[b:b + 1],
-                               prior_info[b:b + 1], 8)
+        Xb, Hb, _ = _gauss_newton(X0[b:b + 1], cams, uvs[b:b + 1], infos[b:b + 1], prior_mean[b:b + 1],
+                                  prior_info[b:b + 1], 8)
         np.testing.assert_allclose(X[b], Xb[0], atol=1e-10)
         np.testing.assert_allclose(H[b], Hb[0], rtol=1e-9)
 
@@ -252,3 +252,41 @@ def test_blob_extent_recovers_the_3d_shape_from_its_projections():
     vals, vecs = np.linalg.eigh(blob_extent(obs, X)[:2, :2])
     lateral = np.array([-math.sin(yaw), math.cos(yaw)])
     assert abs(float(vecs[:, 1] @ lateral)) > math.cos(math.radians(8.0))
+
+
+def test_associate_views_exchanges_the_pair_in_the_view_that_holds_it_the_wrong_way_round():
+    """Two shins 0.2 m apart seen by four cameras; one camera's tracker holds their labels the
+    wrong way round. Triangulated as labelled, each 3-D shin mixes both legs; the view
+    association exchanges that camera's pair back (the rays then meet) and leaves consistent
+    labels alone, even with 1 px noise. A margin above the error gain keeps the labels."""
+    rng = np.random.default_rng(3)
+    cams = ring_cameras()
+    left, right = np.array([0.0, 0.1, 0.5]), np.array([0.0, -0.1, 0.5])
+    cov = np.diag([4.0, 25.0])  # 2 x 5 px, a narrow upright blob
+
+    def blobs(swap_in: set[str]):
+        out = {}
+        for cam in cams:
+            uv = {lab: cam.project(X)[0][0] + rng.normal(0.0, 1.0, 2)
+                  for lab, X in (("l_shin", left), ("r_shin", right))}
+            if cam.name in swap_in:
+                uv = {"l_shin": uv["r_shin"], "r_shin": uv["l_shin"]}
+            out[cam.name] = [Blob2D(lab, m, cov, pixel_count=100) for lab, m in uv.items()]
+        return out
+
+    by_name = {c.name: c for c in cams}
+    for swap_in in ({"cam03"}, {"cam01"}, {"cam02", "cam04"}):
+        mixed = blobs(swap_in)
+        fixed, swapped = associate_views(mixed, by_name, ["shin"], margin_chi2=4.0)
+        # cam01 is the reference: exchanging it is the same association as exchanging all the others
+        expect = swap_in if "cam01" not in swap_in else {c.name for c in cams} - swap_in
+        assert set(swapped) == expect and all(v == ["shin"] for v in swapped.values())
+        tri = triangulate_blobs(fixed, cams)
+        consistent = sorted([tri["l_shin"].mean, tri["r_shin"].mean], key=lambda x: -x[1])
+        np.testing.assert_allclose(consistent, [left, right], atol=0.01)
+        before = triangulate_blobs(mixed, cams)
+        assert np.linalg.norm(before["l_shin"].mean - left) > 0.03  # as labelled: mixed
+        _, kept = associate_views(mixed, by_name, ["shin"], margin_chi2=1e9)
+        assert kept == {}
+    fixed, swapped = associate_views(blobs(set()), by_name, ["shin"], margin_chi2=4.0)
+    assert swapped == {}

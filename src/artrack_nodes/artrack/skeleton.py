@@ -28,7 +28,12 @@ Kinds
     Left/right data association (``fit.mirror_groups``, baseline): the two trouser legs share
     one colour class, so where they pass each other the 2-D labels follow the priors and swap;
     each frame the body is fitted again with the l_/r_ blobs of each group exchanged (default:
-    one group, the whole legs) and the fit of lowest (robust) cost wins.
+    one group, the whole legs) and the fit of lowest (robust) cost wins. The exchanged fit is
+    screened by the group's own dofs alone (``fit_pose(free_dofs=...)``, the rest held at the
+    labelled fit) and fitted in full only when the screen comes within ``fit.mirror_screen_ratio``
+    of the labelled cost. Before that, per view (``measurement.view_association``, all
+    estimators): a pair labelled the wrong way round in some views but not others is put back
+    by the rays that meet (``triangulation.associate_views``).
 
 ``'kinematic'`` — the paper's cheap variant (§2.3, "15 % CPU"): one
     constant-acceleration Kalman filter per blob (paper Eq. 7; ``kalman.py``)
@@ -125,7 +130,7 @@ from .constraints import (
 from .errors import InputError
 from .kalman import ConstantAccelerationKF
 from .lie import inverse_se3, log_se3, skew
-from .triangulation import blob_extent, midpoint, triangulate_blob, triangulate_blobs
+from .triangulation import associate_views, blob_extent, midpoint, triangulate_blob, triangulate_blobs
 from .types import (
     STATUS_INITIALIZING,
     STATUS_LOST,
@@ -168,6 +173,8 @@ class MeasurementConfig:
     floor_m: float = 0.005
     gate_chi2: float = 16.27
     blob_cov: str = "shape+state"
+    view_association: list = field(default_factory=lambda: ["thigh", "shin"])
+    view_association_margin_chi2: float = 4.0
 
 
 @dataclass
@@ -212,6 +219,7 @@ class FitConfig:
     axis_sigma_rad: float = 0.35
     axis_min_ratio: float = 1.3
     mirror_groups: list = field(default_factory=lambda: [["thigh", "shin"]])
+    mirror_screen_ratio: float = 1.5
 
 
 @dataclass
@@ -329,6 +337,7 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
     if len(xy) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in xy):
         raise InputError("skeleton config: field 'startup.start_xy' must be two finite numbers (x, y), m")
     non_negative = (("fit.ground_sigma_m", out.fit.ground_sigma_m),
+                    ("fit.mirror_screen_ratio", out.fit.mirror_screen_ratio),
                     ("startup.start_radius_m", out.startup.start_radius_m))
     for name, value in non_negative:
         if value < 0:
@@ -339,6 +348,11 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
     if not all(isinstance(g, (list, tuple)) and g and all(isinstance(p, str) and p for p in g) for g in groups):
         raise InputError("skeleton config: field 'fit.mirror_groups' must be a list of lists of part names "
                          "(without the side prefix, e.g. [[thigh, shin], [shin]])")
+    if not all(isinstance(p, str) and p for p in out.measurement.view_association):
+        raise InputError("skeleton config: field 'measurement.view_association' must be a list of part names "
+                         "(without the side prefix, e.g. [thigh, shin])")
+    if out.measurement.view_association_margin_chi2 < 0:
+        raise InputError("skeleton config: field 'measurement.view_association_margin_chi2' must be >= 0")
     if out.measurement.blob_cov not in ("shape+state", "state"):
         raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
     return out
@@ -554,6 +568,7 @@ def fit_pose(
     ground: GroundContact | None = None,
     jacobian: str = "analytic",
     tolerance: float = 1e-8,
+    free_dofs: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Bounded least-squares fit of theta to 3-D point targets (and, optionally, link motions).
 
@@ -571,8 +586,10 @@ def fit_pose(
     link poses, ``½ Σ_i ‖S_i (log(E_ref,i⁻¹ E_i(θ)) − ξ̂_i)‖²`` (the edge statistics of
     ALGORITHMS.md §2 as information ``S_iᵀ S_i`` on each link's motion, in the link frame).
     ground: soft floor contact (:class:`GroundContact`), whitened residuals like the others.
-    Returns (theta (n_dof,), cost, cov_theta (n_dof, n_dof) = (JᵀJ)⁺ at the solution, robust
-    weights included).
+    free_dofs: indices of the dofs to fit, the others held at theta0 (a conditional fit; the
+    cost still counts every residual, so conditional costs of fits that share the held dofs
+    compare). Returns (theta (n_dof,), cost, cov_theta (n_dof, n_dof) = (JᵀJ)⁺ at the solution,
+    robust weights included; zero rows and columns for held dofs).
     """
     lo, hi = body.lower, body.upper
     span = np.maximum(hi - lo, 1e-9)
@@ -605,7 +622,6 @@ def fit_pose(
             r.append(np.broadcast_to(w * (theta[..., jd] - c), (*x.shape[:-2], jd.size)))
         return np.concatenate(r, axis=-1)
 
-    fun = residuals
     h = 1e-6
     reg_rows = [np.zeros((jd.size, body.n_dof)) for _ in reg_w]
     for rows, w in zip(reg_rows, reg_w, strict=True):
@@ -638,16 +654,31 @@ def fit_pose(
 
     if jacobian not in ("analytic", "numeric"):
         raise ValueError(f"fit_pose: jacobian must be 'analytic' or 'numeric', got {jacobian!r}")
-    jac = jac_analytic if jacobian == "analytic" else jac_numeric
+    fun, jac = residuals, (jac_analytic if jacobian == "analytic" else jac_numeric)
 
     if len(targets) == 0 and not reg_w and (link_goals is None or not len(link_goals.links)):
         return x0, 0.0, np.eye(body.n_dof)
+    free = np.arange(body.n_dof) if free_dofs is None else np.asarray(free_dofs, int)
+
+    def expand(x):  # the held dofs stay at x0
+        theta = x0.copy()
+        theta[free] = x
+        return theta
+
+    def fit_fun(x):
+        return fun(expand(x))
+
+    def fit_jac(x):
+        return jac(expand(x))[:, free]
+
     loss = ("cauchy", float(robust_scale)) if robust_scale > 0 else ("linear", 1.0)
-    res = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", max_nfev=max_nfev, x_scale=1.0,
-                        loss=loss[0], f_scale=loss[1], ftol=tolerance, xtol=tolerance, gtol=tolerance)
+    res = least_squares(fit_fun, x0[free], jac=fit_jac, bounds=(lo[free], hi[free]), method="trf",
+                        max_nfev=max_nfev, x_scale=1.0, loss=loss[0], f_scale=loss[1], ftol=tolerance,
+                        xtol=tolerance, gtol=tolerance)
     J = res.jac
-    cov = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True)
-    return res.x, float(res.cost), cov
+    cov = np.zeros((body.n_dof, body.n_dof))
+    cov[np.ix_(free, free)] = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True)
+    return expand(res.x), float(res.cost), cov
 
 
 def _mirror_label(label: str) -> str:
@@ -777,10 +808,14 @@ class _Estimator:
         self._ground = GroundContact.from_body(body, f.ground_sigma_m, f.floor_z_m) if f.ground_sigma_m > 0 else None
         self._reach = self._arm_reach()
         sided = {lab[2:] for lab in body.blob_labels if lab[:2] == "l_" and "r_" + lab[2:] in body.blob_labels}
-        unknown = sorted({p for g in f.mirror_groups for p in g} - sided)
-        if unknown:
-            raise InputError(f"skeleton config: field 'fit.mirror_groups' names part '{unknown[0]}', which has "
-                             f"no l_/r_ blob pair (pairs: {', '.join(sorted(sided))})")
+        for name, parts in (("fit.mirror_groups", {p for g in f.mirror_groups for p in g}),
+                            ("measurement.view_association", set(self.cfg.measurement.view_association))):
+            unknown = sorted(parts - sided)
+            if unknown:
+                raise InputError(f"skeleton config: field '{name}' names part '{unknown[0]}', which has "
+                                 f"no l_/r_ blob pair (pairs: {', '.join(sorted(sided))})")
+        #: {camera: [parts]} whose l_/r_ labels the last frame's view association exchanged
+        self.view_swaps: dict[str, list[str]] = {}
         pr = self.cfg.prior
         unknown = sorted(set(pr.rest_sigma_by_link) - set(body.link_names))
         if unknown:
@@ -850,6 +885,10 @@ class _Estimator:
 
     def _triangulate(self, blobs_by_camera, priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
         labelled = {c: [b for b in bl if b.label in self.labels] for c, bl in blobs_by_camera.items()}
+        m = self.cfg.measurement
+        if m.view_association:
+            labelled, self.view_swaps = associate_views(labelled, self.cameras, m.view_association,
+                                                        m.view_association_margin_chi2)
         obs = triangulate_blobs(labelled, self.cameras, priors)
         return {k: v for k, v in obs.items() if k in self.labels}
 
@@ -1293,17 +1332,24 @@ class BaselineEstimator(_Estimator):
     def _triangulation_priors(self, stamp_ns):
         return {b.label: b for b in self._predict(stamp_ns).blobs}
 
-    def _mirror_hypotheses(self, obs: Mapping[str, Blob3D]) -> list[dict[str, Blob3D]]:
+    def _mirror_hypotheses(self, obs: Mapping[str, Blob3D]) -> list[tuple[dict[str, Blob3D], np.ndarray]]:
         """This frame's blobs with the left and right blobs of each ``fit.mirror_groups`` group
         exchanged (groups whose parts are not seen on both sides are skipped): the other
-        data associations of the legs, which the body fit tests against the labelled one."""
+        data associations of the legs, which the body fit tests against the labelled one.
+        Each comes with the dofs that move the exchanged blobs' links and no other observed
+        blob's link (the hips and knees for the legs)."""
         out = []
+        moves = self.body.dof_moves_link
         for group in self.cfg.fit.mirror_groups:
             swapped = {side + part for part in group if "l_" + part in obs and "r_" + part in obs
                        for side in ("l_", "r_")}
             if swapped:  # each label takes its mirror's blob (the labels keep obs' order)
                 source = {k: obs[_mirror_label(k)] if k in swapped else obs[k] for k in obs}
-                out.append({k: Blob3D(k, b.mean, b.cov, b.cameras) for k, b in source.items()})
+                links = {k: int(self.kin.blob_links[self.kin.blob_index[k]]) for k in obs}
+                own = moves[[links[k] for k in swapped]].any(axis=0)
+                others = moves[[links[k] for k in obs if k not in swapped] + [0]].any(axis=0)
+                free = np.flatnonzero(own & ~others)
+                out.append(({k: Blob3D(k, b.mean, b.cov, b.cameras) for k, b in source.items()}, free))
         return out
 
     def _step(self, stamp_ns, obs):
@@ -1332,14 +1378,18 @@ class BaselineEstimator(_Estimator):
             self._ground,
             tolerance=f.tolerance,
         )
-        for mirrored in self._mirror_hypotheses(obs):
-            theta_m, cost_m, cov_m = fit_pose(
-                self.body, self.theta, self._blob_targets(mirrored) + axis, self.kin.rest, self.rest_sigma_dof,
-                self.theta, f.previous_sigma_rad, f.max_nfev, f.robust_scale, goals, self._ground,
-                tolerance=f.tolerance,
-            )
-            if cost_m < cost:
-                theta, cost, cov = theta_m, cost_m, cov_m
+        for mirrored, free in self._mirror_hypotheses(obs):
+            # Screen first: the exchanged blobs refitted by their own dofs alone, the rest of the
+            # body held at the labelled fit. Its cost bounds the full mirrored fit's from above, so
+            # only a screen that already beats the labelled fit earns the full fit.
+            targets_m = self._blob_targets(mirrored) + axis
+            args = (self.kin.rest, self.rest_sigma_dof, self.theta, f.previous_sigma_rad, f.max_nfev,
+                    f.robust_scale, goals, self._ground)
+            theta_m, cost_m, _ = fit_pose(self.body, theta, targets_m, *args, tolerance=f.tolerance, free_dofs=free)
+            if cost_m < f.mirror_screen_ratio * cost:
+                theta_m, cost_m, cov_m = fit_pose(self.body, theta_m, targets_m, *args, tolerance=f.tolerance)
+                if cost_m < cost:
+                    theta, cost, cov = theta_m, cost_m, cov_m
         self._set_pose(theta, cov, self.poses, dt)
 
     def _estimate(self, stamp_ns):

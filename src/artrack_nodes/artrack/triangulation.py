@@ -34,6 +34,7 @@ of the order of the blob's 3-D extent divided by sqrt(number of views).
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
@@ -43,11 +44,15 @@ from .errors import InputError
 from .types import Blob2D, Blob3D
 
 __all__ = [
+    "associate_views",
     "blob_extent",
     "midpoint",
     "triangulate_blob",
     "triangulate_blobs",
 ]
+
+#: Most views whose left/right labels :func:`associate_views` exchanges jointly (2^(k-1) hypotheses).
+MAX_ASSOCIATION_VIEWS = 6
 
 #: Smallest eigenvalue of Σ (I - d dᵀ) below which the rays are taken as parallel
 #: (two rays at angle θ give about sin²θ / 2; 1e-6 is θ ≈ 0.08°).
@@ -95,8 +100,9 @@ def _gauss_newton(
     X: (B, 3) starts; cams: the C cameras; uvs: (B, C, 2) px; infos: (B, C, 2, 2) px⁻², zero
     where camera c does not see point b; prior_mean (B, 3) m and prior_info (B, 3, 3) m⁻², zero
     for no prior. Each point halves its own step until its cost does not increase and it stays
-    in front of its cameras, and stops on its own. Returns X (B, 3) and the information
-    matrices H (B, 3, 3) at X.
+    in front of its cameras, and stops on its own. Returns X (B, 3), the information
+    matrices H (B, 3, 3) at X and the costs (B,) there (weighted squared reprojection error
+    plus prior term).
     """
     X = np.array(X, dtype=float).reshape(-1, 3)
     n = X.shape[0]
@@ -131,11 +137,14 @@ def _gauss_newton(
         if not len(idx):
             break
         step = np.zeros((n, 3))
-        for b in idx:  # 3x3 solves; a singular one stops only its own point
-            try:
-                step[b] = np.linalg.solve(H[b], g[b])
-            except np.linalg.LinAlgError:
-                active[b] = False
+        try:  # all 3x3 solves at once ...
+            step[idx] = np.linalg.solve(H[idx], g[idx][..., None])[..., 0]
+        except np.linalg.LinAlgError:  # ... unless one is singular: it stops only its own point
+            for b in idx:
+                try:
+                    step[b] = np.linalg.solve(H[b], g[b])
+                except np.linalg.LinAlgError:
+                    active[b] = False
         idx = np.flatnonzero(active)
         lam = np.ones(n)
         accepted = np.zeros(n, bool)
@@ -156,7 +165,7 @@ def _gauss_newton(
             lam[pending] *= 0.5
         moved = np.linalg.norm(lam[:, None] * step, axis=1)
         active &= accepted & (moved >= 1e-10)
-    return X, H
+    return X, H, cost
 
 
 class _Problem(NamedTuple):
@@ -221,9 +230,9 @@ def _set_up(
                     prior_mean if use_prior else None, prior_info if use_prior else None)
 
 
-def _solve(problems: list[_Problem], iterations: int) -> list[Blob3D | None]:
-    """Run the problems' Gauss–Newton steps together (:func:`_gauss_newton`) and turn each
-    result into a Blob3D (None where the information matrix is singular or not finite)."""
+def _run(problems: list[_Problem], iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run the problems' Gauss–Newton steps together (:func:`_gauss_newton`): X (n, 3), H (n, 3, 3),
+    cost (n,)."""
     cams: dict[str, Camera] = {}
     for problem in problems:
         for c in problem.cameras:
@@ -240,7 +249,13 @@ def _solve(problems: list[_Problem], iterations: int) -> list[Blob3D | None]:
         uvs[b, cols], infos[b, cols], X0[b] = pb.uvs, pb.infos, pb.start
         if pb.prior_mean is not None:
             prior_mean[b], prior_info[b] = pb.prior_mean, pb.prior_info
-    X, H = _gauss_newton(X0, list(cams.values()), uvs, infos, prior_mean, prior_info, iterations)
+    return _gauss_newton(X0, list(cams.values()), uvs, infos, prior_mean, prior_info, iterations)
+
+
+def _solve(problems: list[_Problem], iterations: int) -> list[Blob3D | None]:
+    """:func:`_run`, each result turned into a Blob3D (None where the information matrix is
+    singular or not finite)."""
+    X, H, _ = _run(problems, iterations)
     out: list[Blob3D | None] = []
     for b, pb in enumerate(problems):
         try:
@@ -325,6 +340,79 @@ def triangulate_blobs(
     if not problems:
         return {}
     return {blob.label: blob for blob in _solve(problems, iterations) if blob is not None}
+
+
+def associate_views(
+    blobs_by_camera: Mapping[str, Sequence[Blob2D]],
+    cameras: Mapping[str, Camera],
+    parts: Iterable[str],
+    margin_chi2: float,
+    iterations: int = 5,
+) -> tuple[dict[str, list[Blob2D]], dict[str, list[str]]]:
+    """Left/right association of a symmetric part pair across views, before triangulation.
+
+    A 2-D tracker can hold the l_ and r_ labels of two look-alike parts (trouser legs) the
+    wrong way round in one view and the right way in the others; triangulated as labelled,
+    each 3-D blob then mixes both legs. For each part p of ``parts``, the views that see both
+    ``l_p`` and ``r_p`` (finite) are tested: every way of exchanging the pair's labels in a
+    subset of them (the first view fixed: exchanging all views is the global left/right
+    question, which the body fit answers) is triangulated, and the one with the lowest summed
+    weighted reprojection error (:func:`_gauss_newton`'s cost, both labels) is taken if it
+    beats the labels as given by more than ``margin_chi2``. The geometry, not the prior, decides:
+    the consistent association is the one whose rays meet. More than
+    :data:`MAX_ASSOCIATION_VIEWS` such views: not tested.
+
+    Returns (blobs_by_camera with the exchanged labels; {camera: [parts exchanged there]}).
+    """
+    cams = dict(cameras)
+    out = {c: list(bl) for c, bl in blobs_by_camera.items()}
+    tests = []  # per part: (part, its views [(camera, left index, right index)], hypotheses, first problem)
+    problems: list[_Problem] = []
+    for part in parts:
+        left, right = "l_" + part, "r_" + part
+        views = []
+        for name in sorted(out):
+            idx = {b.label: i for i, b in enumerate(out[name]) if b.label in (left, right) and _finite(b)}
+            if len(idx) == 2 and name in cams:
+                views.append((name, idx[left], idx[right]))
+        k = len(views)
+        if not 2 <= k <= MAX_ASSOCIATION_VIEWS:
+            continue
+        ray = {}  # (camera, blob index) -> viewing ray
+        for name, *idx in views:
+            uv = np.array([np.asarray(out[name][i].mean, float).reshape(2) for i in idx])
+            ray.update(zip([(name, i) for i in idx], cams[name].rays(uv)[1], strict=True))
+        first, hypotheses = len(problems), []
+        for h in range(2 ** (k - 1)):  # bit v-1 of h: exchange the pair in view v (view 0 fixed)
+            flip = [v > 0 and bool(h >> (v - 1) & 1) for v in range(k)]
+            sides = []
+            for own, other in ((1, 2), (2, 1)):  # the left label's blobs, then the right's
+                keys = [(view[0], view[other] if f else view[own]) for view, f in zip(views, flip, strict=True)]
+                obs = [(cams[name], out[name][i]) for name, i in keys]
+                sides.append(_set_up(obs, np.array([ray[key] for key in keys]), None, False))
+            if all(p is not None and len(p.cameras) == k for p in sides):
+                problems.extend(sides)
+                hypotheses.append(flip)
+        if len(hypotheses) < 2 or any(hypotheses[0]):  # the labels as given must be among them
+            del problems[first:]
+            continue
+        tests.append((part, views, hypotheses, first))
+    swapped: dict[str, list[str]] = {}
+    if not tests:
+        return out, swapped
+    _, _, cost = _run(problems, iterations)
+    for part, views, hypotheses, first in tests:
+        total = cost[first:first + 2 * len(hypotheses)].reshape(-1, 2).sum(axis=1)
+        best = int(np.argmin(total))
+        if best == 0 or total[0] - total[best] <= margin_chi2:
+            continue
+        for (name, i_left, i_right), f in zip(views, hypotheses[best], strict=True):
+            if f:
+                bl = out[name]
+                bl[i_left], bl[i_right] = (replace(bl[i_left], label="r_" + part),
+                                           replace(bl[i_right], label="l_" + part))
+                swapped.setdefault(name, []).append(part)
+    return out, swapped
 
 
 def blob_extent(observations: Sequence[tuple[Camera, Blob2D]], point: np.ndarray) -> np.ndarray | None:
