@@ -347,7 +347,7 @@ def associate_views(
     cameras: Mapping[str, Camera],
     parts: Iterable[str],
     margin_chi2: float,
-    iterations: int = 5,
+    iterations: int = 2,
 ) -> tuple[dict[str, list[Blob2D]], dict[str, list[str]]]:
     """Left/right association of a symmetric part pair across views, before triangulation.
 
@@ -378,19 +378,24 @@ def associate_views(
         k = len(views)
         if not 2 <= k <= MAX_ASSOCIATION_VIEWS:
             continue
-        ray = {}  # (camera, blob index) -> viewing ray
+        ray, uv, info = {}, {}, {}  # per (camera, blob index): viewing ray, mean, 2-D information
         for name, *idx in views:
-            uv = np.array([np.asarray(out[name][i].mean, float).reshape(2) for i in idx])
-            ray.update(zip([(name, i) for i in idx], cams[name].rays(uv)[1], strict=True))
+            keys = [(name, i) for i in idx]
+            uv.update((key, np.asarray(out[name][key[1]].mean, float).reshape(2)) for key in keys)
+            ray.update(zip(keys, cams[name].rays(np.array([uv[key] for key in keys]))[1], strict=True))
+            info.update((key, _information_2d(out[name][key[1]].cov)) for key in keys)
         first, hypotheses = len(problems), []
         for h in range(2 ** (k - 1)):  # bit v-1 of h: exchange the pair in view v (view 0 fixed)
             flip = [v > 0 and bool(h >> (v - 1) & 1) for v in range(k)]
             sides = []
             for own, other in ((1, 2), (2, 1)):  # the left label's blobs, then the right's
                 keys = [(view[0], view[other] if f else view[own]) for view, f in zip(views, flip, strict=True)]
-                obs = [(cams[name], out[name][i]) for name, i in keys]
-                sides.append(_set_up(obs, np.array([ray[key] for key in keys]), None, False))
-            if all(p is not None and len(p.cameras) == k for p in sides):
+                used = [cams[name] for name, _ in keys]
+                X0, spread = midpoint(np.array([c.center for c in used]), np.array([ray[key] for key in keys]))
+                if spread >= _MIN_RAY_SPREAD and all(float(c.R[2] @ X0 + c.t[2]) > 0.0 for c in used):
+                    sides.append(_Problem(f"{part}:{h}", used, np.array([uv[key] for key in keys]),
+                                          np.array([info[key] for key in keys]), X0, None, None))
+            if len(sides) == 2:  # both rays' bundles meet in front of their cameras
                 problems.extend(sides)
                 hypotheses.append(flip)
         if len(hypotheses) < 2 or any(hypotheses[0]):  # the labels as given must be among them
