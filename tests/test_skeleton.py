@@ -22,6 +22,7 @@ from artrack.skeleton import (
     LinkGoals,
     PointTarget,
     SkeletonConfig,
+    _exchange_sides,
     fit_pose,
     load_skeleton_config,
     make_estimator,
@@ -629,6 +630,33 @@ def test_fit_pose_over_some_dofs_holds_the_others(body):
     _, cost_held, _ = fit_pose(body, moved, targets, free_dofs=free, **kw)
     _, cost_full, _ = fit_pose(body, moved, targets, **kw)
     assert cost_full < 1e-3 and cost_held > 1.0, (cost_full, cost_held)
+
+
+def test_exchange_sides_mirrors_the_legs_across_the_sagittal_plane(body):
+    """The leg test's screen starts from the labelled legs exchanged and mirrored: with the pelvis
+    upright at the origin, the left knee and ankle land where the right ones were with y negated
+    (and back); exchanging twice is the identity; the other joints do not move."""
+    rng = np.random.default_rng(2)
+    theta = body.rest_pose()
+    theta[:6] = 0.0
+    for name in ("l_thigh", "r_thigh", "l_shin", "r_shin"):
+        lk = body.link(name)
+        other = body.link("r_" + name[2:] if name.startswith("l_") else "l_" + name[2:])
+        sign = np.array([-1.0, 1.0, -1.0]) if lk.joint == "ball" else np.ones(1)  # the mirror of each dof
+        lo = np.maximum(lk.lower, np.where(sign > 0, other.lower, -other.upper))  # within both sides' limits
+        hi = np.minimum(lk.upper, np.where(sign > 0, other.upper, -other.lower))
+        theta[lk.dof_slice] = rng.uniform(lo, hi)
+    out = _exchange_sides(body, theta, {"l_thigh", "r_thigh", "l_shin", "r_shin"})
+    J = {n: i for i, n in enumerate(body.joint_names)}
+    before, after = body.joint_positions(theta), body.joint_positions(out)
+    flip = np.array([1.0, -1.0, 1.0])
+    for a, b in (("l_knee", "r_knee"), ("l_ankle", "r_ankle")):
+        np.testing.assert_allclose(after[J[a]], flip * before[J[b]], atol=1e-9)
+        np.testing.assert_allclose(after[J[b]], flip * before[J[a]], atol=1e-9)
+    others = [J[n] for n in J if n not in ("l_knee", "r_knee", "l_ankle", "r_ankle")]
+    np.testing.assert_allclose(after[others], before[others], atol=1e-12)
+    np.testing.assert_allclose(_exchange_sides(body, out, {"l_thigh", "r_thigh", "l_shin", "r_shin"}), theta,
+                               atol=1e-12)
 
 
 def test_kinematic_keeps_fast_limbs_when_the_wave_starts(body, cameras):

@@ -681,6 +681,28 @@ def fit_pose(
     return expand(res.x), float(res.cost), cov
 
 
+def _exchange_sides(body: BodyModel, theta: np.ndarray, labels) -> np.ndarray:
+    """theta with the joints of each l_/r_ link pair among ``labels`` (link names) exchanged and
+    mirrored across the body's sagittal plane (the link frames' x-z plane at rest, body model
+    convention: x forward, y left): a ball joint's rotation vector (x, y, z) becomes (-x, y, -z),
+    a hinge angle keeps its sign when the mirrored axis is the other side's axis and flips it
+    when it is opposite. Clipped to the joint limits."""
+    out = np.array(theta, float)
+    mirror = np.diag([1.0, -1.0, 1.0])
+    names = set(body.link_names)
+    for left in sorted(lab for lab in labels if lab.startswith("l_") and lab in names and "r_" + lab[2:] in names):
+        a, b = body.link(left), body.link("r_" + left[2:])
+        if a.joint != b.joint or a.n_dof != b.n_dof or a.joint not in ("ball", "hinge"):
+            continue
+        ta, tb = theta[a.dof_slice].copy(), theta[b.dof_slice].copy()
+        if a.joint == "ball":
+            out[a.dof_slice], out[b.dof_slice] = -mirror @ tb, -mirror @ ta
+        else:
+            sign = 1.0 if float(-mirror @ a.axis @ b.axis) >= 0.0 else -1.0
+            out[a.dof_slice], out[b.dof_slice] = sign * tb, sign * ta
+    return body.clip(out)
+
+
 def _mirror_label(label: str) -> str:
     """'l_hand' <-> 'r_hand'; other labels unchanged."""
     if label.startswith("l_"):
@@ -1332,12 +1354,12 @@ class BaselineEstimator(_Estimator):
     def _triangulation_priors(self, stamp_ns):
         return {b.label: b for b in self._predict(stamp_ns).blobs}
 
-    def _mirror_hypotheses(self, obs: Mapping[str, Blob3D]) -> list[tuple[dict[str, Blob3D], np.ndarray]]:
+    def _mirror_hypotheses(self, obs: Mapping[str, Blob3D]) -> list[tuple[dict[str, Blob3D], np.ndarray, set]]:
         """This frame's blobs with the left and right blobs of each ``fit.mirror_groups`` group
         exchanged (groups whose parts are not seen on both sides are skipped): the other
         data associations of the legs, which the body fit tests against the labelled one.
         Each comes with the dofs that move the exchanged blobs' links and no other observed
-        blob's link (the hips and knees for the legs)."""
+        blob's link (the hips and knees for the legs), and the exchanged labels."""
         out = []
         moves = self.body.dof_moves_link
         for group in self.cfg.fit.mirror_groups:
@@ -1349,7 +1371,7 @@ class BaselineEstimator(_Estimator):
                 own = moves[[links[k] for k in swapped]].any(axis=0)
                 others = moves[[links[k] for k in obs if k not in swapped] + [0]].any(axis=0)
                 free = np.flatnonzero(own & ~others)
-                out.append(({k: Blob3D(k, b.mean, b.cov, b.cameras) for k, b in source.items()}, free))
+                out.append(({k: Blob3D(k, b.mean, b.cov, b.cameras) for k, b in source.items()}, free, swapped))
         return out
 
     def _step(self, stamp_ns, obs):
@@ -1378,14 +1400,16 @@ class BaselineEstimator(_Estimator):
             self._ground,
             tolerance=f.tolerance,
         )
-        for mirrored, free in self._mirror_hypotheses(obs):
+        for mirrored, free, swapped in self._mirror_hypotheses(obs):
             # Screen first: the exchanged blobs refitted by their own dofs alone, the rest of the
-            # body held at the labelled fit. Its cost bounds the full mirrored fit's from above, so
-            # only a screen that already beats the labelled fit earns the full fit.
+            # body held at the labelled fit, from that fit's legs mirrored across the body's
+            # sagittal plane (left in the right's pose and back). Its cost bounds the full
+            # mirrored fit's from above, so only a screen near the labelled cost earns the full fit.
             targets_m = self._blob_targets(mirrored) + axis
             args = (self.kin.rest, self.rest_sigma_dof, self.theta, f.previous_sigma_rad, f.max_nfev,
                     f.robust_scale, goals, self._ground)
-            theta_m, cost_m, _ = fit_pose(self.body, theta, targets_m, *args, tolerance=f.tolerance, free_dofs=free)
+            start = _exchange_sides(self.body, theta, swapped)
+            theta_m, cost_m, _ = fit_pose(self.body, start, targets_m, *args, tolerance=f.tolerance, free_dofs=free)
             if cost_m < f.mirror_screen_ratio * cost:
                 theta_m, cost_m, cov_m = fit_pose(self.body, theta_m, targets_m, *args, tolerance=f.tolerance)
                 if cost_m < cost:
