@@ -17,7 +17,8 @@ Prints one row every ``--every`` frames::
     frame  MPJPE  head  lwr  rwr  yaw true/est  swap | label views:px[mm][>nearest] ...
 
 then a summary (first tracked frame, frames with the heading off by more than 45 deg, with
-hands / legs swapped, per-label seen share, 2-D px error, mislabelled share, and the median
+hands / legs swapped, with a leg pair exchanged in some views by the view association
+(``triangulation.associate_views``), per-label seen share, 2-D px error, mislabelled share, and the median
 offset, in the true link's frame, of the triangulated blob (seen in 3 or more views) from the
 body model's blob centre: a bias of the appearance model) and ends with one JSON line of the
 summary. ``--true-start FRAME`` re-seeds the skeleton with the true pose at that frame (the
@@ -150,7 +151,8 @@ def main() -> int:
                      "head": float(err[J["head"]]), "lwr": float(err[J["l_wrist"]]), "rwr": float(err[J["r_wrist"]]),
                      "yaw_true": yaw_deg(theta), "yaw_err": float(dyaw),
                      "hands_swapped": swapped(est, tj, J["l_wrist"], J["r_wrist"]),
-                     "legs_swapped": swapped(est, tj, J["l_knee"], J["r_knee"]), "labels": per})
+                     "legs_swapped": swapped(est, tj, J["l_knee"], J["r_knee"]),
+                     "view_swaps": bool(pipe.skeleton.estimator.view_swaps), "labels": per})
     print(f"{'frame':>5} {'MPJPE':>6} {'head':>5} {'lwr':>5} {'rwr':>5} {'yaw true/err':>13} swap | "
           "label views:px [3-D mm] [>nearest true part]")
     for r in rows[:: max(1, args.every)]:
@@ -172,6 +174,7 @@ def main() -> int:
         "heading_off_frames": sum(abs(r["yaw_err"]) > HEADING_LIMIT_DEG for r in rows),
         "hands_swapped_frames": sum(r["hands_swapped"] for r in rows),
         "legs_swapped_frames": sum(r["legs_swapped"] for r in rows),
+        "view_association_frames": sum(r["view_swaps"] for r in rows),
         "labels": {},
     }
     for lab in labels:
@@ -188,7 +191,8 @@ def main() -> int:
     print(f"\ntracked {len(rows)} frames from frame {summary['first_tracked_frame']}; "
           f"MPJPE {summary['mpjpe_mm']:.1f} mm; "
           f"heading off > {HEADING_LIMIT_DEG:.0f} deg in {summary['heading_off_frames']}, hands swapped in "
-          f"{summary['hands_swapped_frames']}, legs swapped in {summary['legs_swapped_frames']} of them")
+          f"{summary['hands_swapped_frames']}, legs swapped in {summary['legs_swapped_frames']} of them; the view "
+          f"association exchanged a pair in {summary['view_association_frames']}")
     print(f"{'label':<9}{'views/4':>8}{'2-D px':>8}{'3-D mm (median)':>17}{'mislabelled %':>15}"
           "  blob - model centre, link frame x y z mm (median)")
     for lab, s in summary["labels"].items():

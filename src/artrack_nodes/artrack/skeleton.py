@@ -1408,8 +1408,10 @@ class BaselineEstimator(_Estimator):
             targets_m = self._blob_targets(mirrored) + axis
             args = (self.kin.rest, self.rest_sigma_dof, self.theta, f.previous_sigma_rad, f.max_nfev,
                     f.robust_scale, goals, self._ground)
-            start = _exchange_sides(self.body, theta, swapped)
-            theta_m, cost_m, _ = fit_pose(self.body, start, targets_m, *args, tolerance=f.tolerance, free_dofs=free)
+            theta_m, cost_m = _exchange_sides(self.body, theta, swapped), 0.0
+            if free.size:  # (no dof of their own: straight to the full fit)
+                theta_m, cost_m, _ = fit_pose(self.body, theta_m, targets_m, *args, tolerance=f.tolerance,
+                                              free_dofs=free)
             if cost_m < f.mirror_screen_ratio * cost:
                 theta_m, cost_m, cov_m = fit_pose(self.body, theta_m, targets_m, *args, tolerance=f.tolerance)
                 if cost_m < cost:
