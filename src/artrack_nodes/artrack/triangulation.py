@@ -17,6 +17,11 @@ model", read backwards); three or more views determine S by linear least squares
 with d_1, d_2 their viewing rays, S + c (d_1 d_2ᵀ + d_2 d_1ᵀ) projects alike in both). A torso's
 widest horizontal axis is the shoulder line, whose heading the blob means cannot give.
 
+Left/right association across views (:func:`associate_views`): look-alike pairs (the trouser
+legs) can carry their l_/r_ labels the wrong way round in some views only; of the ways of
+exchanging the pair per view, the one whose rays meet best (lowest weighted reprojection error)
+is taken before triangulating, so that no 3-D blob mixes both parts.
+
 One view constrains only the ray (rank-2 information). Then a prior Blob3D
 (e.g. the skeleton's prediction) is required and fused as one more Gaussian in
 information form, so the depth along the ray comes from the prior; without a
