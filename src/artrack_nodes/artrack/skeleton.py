@@ -690,8 +690,8 @@ def _exchange_sides(body: BodyModel, theta: np.ndarray, labels) -> np.ndarray:
     out = np.array(theta, float)
     mirror = np.diag([1.0, -1.0, 1.0])
     names = set(body.link_names)
-    for left in sorted(lab for lab in labels if lab.startswith("l_") and lab in names and "r_" + lab[2:] in names):
-        a, b = body.link(left), body.link("r_" + left[2:])
+    for left in sorted(lab for lab in labels if lab.startswith("l_") and lab in names and _mirror_label(lab) in names):
+        a, b = body.link(left), body.link(_mirror_label(left))
         if a.joint != b.joint or a.n_dof != b.n_dof or a.joint not in ("ball", "hinge"):
             continue
         ta, tb = theta[a.dof_slice].copy(), theta[b.dof_slice].copy()
