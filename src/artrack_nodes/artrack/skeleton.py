@@ -608,8 +608,19 @@ def fit_pose(
         reg_w.append(np.full(jd.size, 1.0 / previous_sigma))
         reg_c.append(np.asarray(previous, float)[jd])
 
-    def residuals(theta: np.ndarray) -> np.ndarray:
+    last = {}  # the link poses of the last single theta evaluated: scipy asks for the Jacobian where it
+    # has just evaluated the residuals, so the analytic Jacobian reuses them
+
+    def poses(theta: np.ndarray) -> np.ndarray:
+        if theta.ndim == 1 and "theta" in last and np.array_equal(theta, last["theta"]):
+            return last["T"]
         T = body.forward_kinematics(theta)
+        if theta.ndim == 1:
+            last["theta"], last["T"] = theta.copy(), T
+        return T
+
+    def residuals(theta: np.ndarray) -> np.ndarray:
+        T = poses(theta)
         x = body.transform_points(T, links, local)
         r = [np.einsum("pij,...pj->...pi", U, x - y).reshape(*x.shape[:-2], -1)]
         if link_goals is not None and len(link_goals.links):
@@ -634,7 +645,7 @@ def fit_pose(
         return ((r[1:] - r[0]) / h).T
 
     def jac_analytic(theta):
-        T = body.forward_kinematics(theta)
+        T = poses(theta)
         twists = body.dof_twists(theta, T)
         J_points = body.point_jacobian(theta, links, local, T, twists)
         out = [np.einsum("pij,pjd->pid", U, J_points).reshape(-1, body.n_dof)]
