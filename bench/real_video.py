@@ -292,6 +292,10 @@ def run(args) -> int:
         lo = f"{loo[n]:10.3f}" if loo[n] is not None else f"{'-':>10}"
         print(f"{n:<8}{ious[n].mean():10.3f}{tr:13.3f}{lo}{100 * inside[n].mean():10.1f}")
     print(f"joints inside the dilated foreground ({args.dilate_px} px): {100 * inside_share:.1f} % of joint-frames")
+    if tracked.any():  # where the misses are: per joint, over the tracked frames and the views
+        per_joint = np.mean([inside[n][tracked] for n in names], axis=(0, 1))
+        print(f"over the {int(tracked.sum())} tracked frames: {100 * per_joint.mean():.1f} %; per joint: "
+              + ", ".join(f"{j} {100 * v:.0f}" for j, v in zip(body.joint_names, per_joint, strict=True)))
     print(f"max joint speed {max_speed if max_speed is None else round(max_speed, 2)} m/s; "
           f"{flagged} joint-steps above {SPEED_LIMIT:g} m/s" + (f" (frames {fast_frames[:12]})" if flagged else ""))
     hd = head_dist[np.isfinite(head_dist)]
