@@ -40,7 +40,7 @@ tracker); wall-clock times vary with the machine load. Run from the repository r
 
 A change is judged on many seeds, paired: save the JSON line of a run before it and pass it
 with ``--compare`` to the run after it (``artrack.evaluation.compare_paired``: per seed
-before -> after, means, medians, seeds better / worse by more than 1 mm, sign-test p)::
+before -> after, means, medians, seeds better / worse by more than 1 mm, sign-test and Wilcoxon p)::
 
     .venv/bin/python bench/closed_loop.py --scenes default --estimators baseline --feedback on \
         --seeds 1 2 3 4 5 6 7 8 9 10 | tail -1 > before.json
@@ -306,7 +306,7 @@ def print_comparison(path: str, before: list[dict], after: list[dict]) -> None:
         print(f"{' '.join(map(str, group))}: {pairs}")
         print(f"  mean {c['mean_before']:.1f} -> {c['mean_after']:.1f}, median {c['median_before']:.1f} -> "
               f"{c['median_after']:.1f}; {c['better']} better, {c['worse']} worse, {c['ties']} within 1 mm of "
-              f"{c['n']}; sign test p = {c['sign_test_p']:.2f}")
+              f"{c['n']}; sign test p = {c['sign_test_p']:.2f}, Wilcoxon signed-rank p = {c['wilcoxon_p']:.3f}")
 
 
 if __name__ == "__main__":

@@ -169,7 +169,8 @@ def test_label_confusion_names_the_nearest_true_part():
 
 def test_compare_paired_counts_seeds_and_sign_tests_them():
     """compare_paired (bench/closed_loop.py --compare): pairs only the keys with finite values in
-    both runs, counts better / worse beyond tie_mm, and gives the exact two-sided sign test."""
+    both runs, counts better / worse beyond tie_mm, and gives the exact two-sided sign test and
+    the Wilcoxon signed-rank test."""
     before = {1: 100.0, 2: 200.0, 3: 150.0, 4: 120.0, 5: float("nan"), 6: 90.0}
     after = {1: 80.0, 2: 150.0, 3: 150.5, 4: 160.0, 5: 10.0, 7: 1.0}
     c = compare_paired(before, after)
@@ -177,9 +178,19 @@ def test_compare_paired_counts_seeds_and_sign_tests_them():
     assert c["mean_before"] == pytest.approx(142.5) and c["mean_after"] == pytest.approx(135.125)
     assert c["median_before"] == pytest.approx(135.0) and c["median_after"] == pytest.approx(150.25)
     assert c["sign_test_p"] == pytest.approx(1.0)  # 2 of 3: P(|X - 1.5| >= 0.5) under Bin(3, 1/2)
+    # signed ranks of -20, -50, +40 (the tie dropped): W+ = 2; of the 8 equally likely sign
+    # patterns of ranks 1, 2, 3, three give W+ <= 2: two-sided p = 2 x 3/8
+    assert c["wilcoxon_p"] == pytest.approx(0.75)
     ten = compare_paired({k: 100.0 for k in range(10)}, {k: 50.0 for k in range(10)})
     assert ten["better"] == 10 and ten["sign_test_p"] == pytest.approx(2 * 0.5**10)
-    assert compare_paired({1: 5.0}, {1: 5.5})["sign_test_p"] == 1.0  # all ties
+    # ten better by different amounts: every signed rank negative, the exact p = 2 / 2^10 again;
+    # nine small gains and one large loss: the sign test sees 9 / 1, the signed ranks less
+    spread = compare_paired({k: 100.0 for k in range(10)}, {k: 100.0 - 5 * (k + 1) for k in range(10)})
+    assert spread["wilcoxon_p"] == pytest.approx(2 * 0.5**10)
+    mixed = compare_paired({k: 100.0 for k in range(10)}, {k: 98.0 - k * 0.1 if k else 400.0 for k in range(10)})
+    assert mixed["better"] == 9 and mixed["sign_test_p"] < 0.03 < mixed["wilcoxon_p"]
+    all_ties = compare_paired({1: 5.0}, {1: 5.5})
+    assert all_ties["sign_test_p"] == 1.0 and all_ties["wilcoxon_p"] == 1.0
     with pytest.raises(InputError, match="no key"):
         compare_paired({1: 1.0}, {2: 1.0})
     with pytest.raises(InputError, match="tie_mm"):
