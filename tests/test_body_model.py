@@ -10,6 +10,7 @@ import pytest
 import yaml
 
 from artrack.body_model import BodyModel, body_model_from_dict, load_body_model
+from artrack.body_quadrics import visible_surface_gaussian
 from artrack.errors import ArtrackError, BodyModelError
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "body_model.yaml"
@@ -153,9 +154,16 @@ def test_capsules_and_blobs(body):
     blobs = body.blobs3d(theta)
     assert [b.label for b in blobs] == body.blob_labels
     head = blobs[body.blob_labels.index("head")]
-    # the head's skin blob ('auto'): below the face ellipsoid's centre (1.62 m; the hair covers
-    # its top) and in front of the head's axis (the face), as the pixels measure it
-    assert 1.50 < head.mean[2] < 1.61 and head.mean[0] > 0.02
+    # the head's skin surface ('auto'): below the face ellipsoid's centre (0.15 m up the link; the
+    # hair covers its top) and in front of the head's axis (the face), as its pixels show it
+    link = body.link_names.index("head")
+    auto_centre, _ = visible_surface_gaussian(body, link, "skin")
+    assert 0.05 < auto_centre[2] < 0.14 and auto_centre[0] > 0.02
+    # the default body places the head's blob where the tracker triangulates it (measured by
+    # bench/blob_centres.py, config/body_model.yaml): lower still, at the neck
+    T = body.forward_kinematics(theta)[link]
+    assert np.allclose(T[:3, :3].T @ (head.mean - T[:3, 3]), body.links[link].blob.centre)
+    assert 1.50 < head.mean[2] < 1.61
     assert np.all(np.linalg.eigvalsh(head.cov) > 0)
     pb = body.capsules(np.stack([theta, theta]))[0]
     assert pb.shape == (2, S, 3)

@@ -286,8 +286,11 @@ def test_startup_holds_its_heading_and_skips_a_two_view_ghost_hand(body, cameras
     """The left hand is hidden in every view; a skin-coloured ghost within arm's reach is seen by
     two of the four cameras. By default (startup.min_hand_views 3) the ghost is no hand and the
     heading is right; taken as the left hand (min_hand_views 0), the fit still keeps the heading
-    because each candidate is held near its heading (startup.heading_sigma_rad); with that off too,
-    the fit turns the body towards the ghost by ~33 deg."""
+    within 20 deg because each candidate is held near its heading (startup.heading_sigma_rad); with
+    that off too, the fit turns the body towards the ghost by 28-40 deg. (Held: 15-17 deg since the
+    head's blob centre sits where the tracker triangulates it, at the neck, config/body_model.yaml;
+    1-13 deg with the 'auto' centre 31 mm further forward, which told the fit more of the facing.
+    The closed loop's start-ups on seeds 1-10 kept their headings to within 3 deg.)"""
     theta = body.rest_pose()
     theta[0:6] = [0.3, -0.2, 0.95, 0.0, 0.0, yaw]
     theta[body.dof_slice("l_upper_arm")] = [0.0, 0.5, 0.0]  # left arm swung back
@@ -316,7 +319,7 @@ def test_startup_holds_its_heading_and_skips_a_two_view_ghost_hand(body, cameras
     assert err < 10 and to_ghost > 0.3, (err, to_ghost)
     assert np.linalg.norm(_hand(e, "r_hand") - centres[body.blob_labels.index("r_hand")]) < 0.05
     err, to_ghost, _ = start(min_hand_views=0)
-    assert to_ghost < 0.05 and err < 15, (err, to_ghost)
+    assert to_ghost < 0.05 and err < 20, (err, to_ghost)
     err, to_ghost, _ = start(min_hand_views=0, heading_sigma_rad=0.0)
     assert to_ghost < 0.05 and err > 25, (err, to_ghost)
 
