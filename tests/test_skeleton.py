@@ -290,7 +290,7 @@ def test_startup_holds_its_heading_and_skips_a_two_view_ghost_hand(body, cameras
     that off too, the fit turns the body towards the ghost by 28-40 deg. (Held: 15-17 deg since the
     head's blob centre sits where the tracker triangulates it, at the neck, config/body_model.yaml;
     1-13 deg with the 'auto' centre 31 mm further forward, which told the fit more of the facing.
-    The closed loop's start-ups on seeds 1-10 kept their headings to within 3 deg.)"""
+    In the closed loop the start-up headings of seeds 1-10 moved by 3 deg at most.)"""
     theta = body.rest_pose()
     theta[0:6] = [0.3, -0.2, 0.95, 0.0, 0.0, yaw]
     theta[body.dof_slice("l_upper_arm")] = [0.0, 0.5, 0.0]  # left arm swung back

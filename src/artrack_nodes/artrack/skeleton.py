@@ -608,8 +608,9 @@ def fit_pose(
         reg_w.append(np.full(jd.size, 1.0 / previous_sigma))
         reg_c.append(np.asarray(previous, float)[jd])
 
-    last = {}  # the link poses of the last single theta evaluated: scipy asks for the Jacobian where it
-    # has just evaluated the residuals, so the analytic Jacobian reuses them
+    # The link poses of the last single theta evaluated: scipy asks for the Jacobian where it has
+    # just evaluated the residuals, so the analytic Jacobian reuses them.
+    last = {}
 
     def poses(theta: np.ndarray) -> np.ndarray:
         if theta.ndim == 1 and "theta" in last and np.array_equal(theta, last["theta"]):
