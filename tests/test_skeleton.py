@@ -23,6 +23,7 @@ from artrack.skeleton import (
     PointTarget,
     SkeletonConfig,
     _exchange_sides,
+    facing_correlation,
     fit_pose,
     load_skeleton_config,
     make_estimator,
@@ -465,6 +466,12 @@ def test_config_file_and_errors(body, cameras):
         make_estimator("particle", body, cameras, None)
     with pytest.raises(InputError, match="rest_sigma_by_link"):
         make_estimator("baseline", body, cameras, {"prior": {"rest_sigma_by_link": {"tail": 1.0}}})
+    with pytest.raises(InputError, match="facing_check_frames"):
+        load_skeleton_config({"tracking": {"facing_check_frames": -1}})
+    with pytest.raises(InputError, match="facing_min_size_ratio"):
+        load_skeleton_config({"tracking": {"facing_min_size_ratio": 0.5}})
+    with pytest.raises(InputError, match="facing_label"):
+        make_estimator("baseline", body, cameras, {"tracking": {"facing_label": "tail"}})
     est = make_estimator("baseline", body, cameras, None)
     with pytest.raises(InputError, match="unknown camera 'cam9'"):
         est.update(0, {"cam9": []})
@@ -716,3 +723,72 @@ def test_kinematic_is_robust_to_one_consistently_mislabelled_blob(body, cameras)
         errs[scale] = (float(np.mean(e_k[5:])), max(e_k[5:]))
     assert errs[3.0][0] < 0.035 and errs[3.0][1] < 0.05, errs
     assert errs[0.0][0] > 3.0 * errs[3.0][0], errs
+
+
+def _head_sized(body, cameras, blobs, theta):
+    """``blobs`` with each view's head blob sized as the face shows it: about four times more
+    pixels in the views the face looks at than behind (the neck under the hair), / distance²."""
+    E = body.forward_kinematics(theta)[body.link_names.index("head")]
+    forward = E[:2, 0] / np.linalg.norm(E[:2, 0])
+    out = {}
+    for cam in cameras:
+        d = np.asarray(cam.center, float) - E[:3, 3]
+        cos = float(forward @ d[:2]) / float(np.linalg.norm(d[:2]))
+        n = int(round((300 + 900 * max(cos, 0.0)) * 16.0 / float(d @ d)))
+        out[cam.name] = [Blob2D(b.label, b.mean, b.cov, pixel_count=n) if b.label == "head" else b
+                         for b in blobs[cam.name]]
+    return out
+
+
+def test_facing_correlation_reads_the_facing_from_the_head_blob_sizes(body, cameras):
+    """facing_correlation: larger head blobs (scaled to 1 m) in the views the head's forward axis
+    points to give a correlation near +1, the same sizes seen by a head turned round near -1;
+    fewer than three views, or sizes alike from every side, say nothing (None)."""
+    theta = _test_pose(body)
+    link = body.link_names.index("head")
+    blobs = _head_sized(body, cameras, blobs_2d(body, cameras, theta), theta)
+    head = {name: b for name, bl in blobs.items() for b in bl if b.label == "head"}
+    cams = {c.name: c for c in cameras}
+    E = body.forward_kinematics(theta)[link]
+    assert facing_correlation(head, cams, E) > 0.8
+    turned = E.copy()
+    turned[:3, :3] = E[:3, :3] @ np.diag([-1.0, -1.0, 1.0])  # the head turned by pi about its own z
+    assert facing_correlation(head, cams, turned) < -0.8
+    assert facing_correlation(dict(list(head.items())[:2]), cams, E) is None
+    # sizes alike from every side (at most 2x apart at 1 m): no facing to read
+    alike = {name: Blob2D("head", b.mean, b.cov, pixel_count=200) for name, b in head.items()}
+    assert facing_correlation(alike, cams, E) is None
+
+
+def test_a_body_tracked_facing_backwards_is_turned_round(body, cameras):
+    """tracking.facing_*: started facing the wrong way with every l_/r_ label swapped to match
+    (the blob positions fit either way round), the body is turned round once the head blob's
+    sizes have disagreed with its facing for facing_check_frames frames; the 2-D labels then
+    follow (as the projected priors make them) and the pose is right. With the check off it
+    stays backwards."""
+    theta = _test_pose(body)
+    truth = body.joint_positions(theta)
+    swap = {lab: ("r_" + lab[2:] if lab[:2] == "l_" else "l_" + lab[2:]) if lab[:2] in ("l_", "r_") else lab
+            for lab in body.blob_labels}
+    right = _head_sized(body, cameras, blobs_2d(body, cameras, theta), theta)
+    swapped = {c: [Blob2D(swap[b.label], b.mean, b.cov, pixel_count=b.pixel_count) for b in bl]
+               for c, bl in right.items()}
+
+    def heading_error(e):
+        R = e.links[0].rotation
+        err = math.atan2(R[1, 0], R[0, 0]) - theta[5]
+        return abs(math.degrees((err + math.pi) % (2 * math.pi) - math.pi))
+
+    for frames in (15, 0):
+        est = make_estimator("baseline", body, cameras,
+                             {"tracking": {"verify_frames": 0, "facing_check_frames": frames}})
+        e = est.update(stamp(0), swapped)
+        assert heading_error(e) > 150  # backwards, every side swapped
+        for k in range(1, 21):
+            e = est.update(stamp(k), right if est.facing_flips else swapped)
+        if frames:
+            assert len(est.facing_flips) == 1 and est.facing_flips[0] <= stamp(16)
+            assert heading_error(e) < 10
+            assert np.linalg.norm(e.joints - truth, axis=1).mean() < 0.03
+        else:
+            assert not est.facing_flips and heading_error(e) > 150

@@ -89,6 +89,10 @@ the rest pose rotated about z is fitted for each candidate, held near that headi
 ``tracking.verify_frames`` frames after any initialisation the
 mirrored hypothesis (heading + π, left <-> right) is fitted too and taken over if
 it explains the labelled blobs much better (knees and elbows bend one way only).
+While tracking, the face check (``tracking.facing_*``, :func:`facing_correlation`)
+turns a body that faces backwards, with every left/right label swapped to match,
+round: the head's skin blob is the face in the views it looks at and only the
+neck behind it, so its sizes tell the facing that the blob positions cannot.
 ``STATUS_LOST`` after ``tracking.lost_after_frames`` consecutive frames with fewer
 than ``tracking.min_blobs`` usable blobs (triangulated; for the Kalman tracker:
 passing the innovation gate); while lost, ``predict`` carries no blobs (so the
@@ -188,6 +192,16 @@ class TrackingConfig:
     relocalise_from_blobs: bool = True
     verify_frames: int = 20
     flip_cost_ratio: float = 0.5
+    #: the face check (:func:`facing_correlation`): over this many frames while tracking (0 = off) ...
+    facing_check_frames: int = 15
+    #: ... a mean correlation below this between the ``facing_label`` blob's size and the estimated
+    #: facing turns the body round (heading + π, left <-> right)
+    facing_flip_correlation: float = -0.3
+    #: ... counted only in frames whose largest size is at least this many times the smallest
+    facing_min_size_ratio: float = 2.0
+    #: the blob whose size shows the facing: the head's skin is the face from the front, the neck
+    #: from behind (the hair covers the rest)
+    facing_label: str = "head"
 
 
 def _default_rest_sigmas() -> dict[str, float]:
@@ -355,6 +369,10 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'measurement.view_association_margin_chi2' must be >= 0")
     if out.measurement.blob_cov not in ("shape+state", "state"):
         raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
+    if out.tracking.facing_check_frames < 0:
+        raise InputError("skeleton config: field 'tracking.facing_check_frames' must be >= 0 (0 = off)")
+    if not out.tracking.facing_min_size_ratio >= 1.0:
+        raise InputError("skeleton config: field 'tracking.facing_min_size_ratio' must be >= 1")
     return out
 
 
@@ -729,6 +747,36 @@ def _heading(R_root: np.ndarray) -> float:
     return math.atan2(float(R_root[1, 0]), float(R_root[0, 0]))
 
 
+def facing_correlation(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera],
+                       world_from_link: np.ndarray, min_size_ratio: float = 2.0) -> float | None:
+    """How well a part's 2-D blob sizes agree with the way the part faces (the face check of
+    ``tracking.facing_*``): Pearson's correlation, over the views whose blob it is (``blobs``:
+    camera -> that part's Blob2D), between the blob's size at 1 m (pixel count x the squared
+    distance from the camera centre to the link origin) and the cosine of the horizontal angle
+    between the link's forward (+x) axis and the direction to that camera.
+
+    The head's skin-coloured blob is the face in the views it looks at and only the neck in the
+    views behind it (the hair covers the rest): about 4x larger (synthetic seeds 1, 12: correlation
+    with the true facing 0.79, 0.85). A body tracked facing backwards, with every left/right label
+    swapped to match, explains the blobs' positions as well as the right one, but not these
+    sizes. world_from_link: (4, 4) the link's pose. None with fewer than three views, or when the
+    largest size is less than ``min_size_ratio`` times the smallest (the part looks alike from
+    every side: no facing to read)."""
+    R, origin = world_from_link[:3, :3], world_from_link[:3, 3]
+    forward = R[:2, 0] / max(float(np.linalg.norm(R[:2, 0])), 1e-9)
+    size, cosine = [], []
+    for name, blob in blobs.items():
+        to_camera = np.asarray(cameras[name].center, float) - origin
+        horizontal = float(np.linalg.norm(to_camera[:2]))
+        if horizontal < 1e-6:
+            continue
+        size.append(blob.pixel_count * float(to_camera @ to_camera))
+        cosine.append(float(forward @ to_camera[:2]) / horizontal)
+    if len(size) < 3 or max(size) < min_size_ratio * max(min(size), 1e-12) or np.ptp(cosine) <= 1e-6:
+        return None
+    return float(np.corrcoef(size, cosine)[0, 1])
+
+
 # =========================================================================== start-up
 def _in_gate(blob: Blob2D, uv: np.ndarray, gate_sigma: float, gate_px: float) -> tuple[bool, float]:
     r = np.asarray(uv, float) - np.asarray(blob.mean, float)
@@ -848,6 +896,11 @@ class _Estimator:
             if unknown:
                 raise InputError(f"skeleton config: field '{name}' names part '{unknown[0]}', which has "
                                  f"no l_/r_ blob pair (pairs: {', '.join(sorted(sided))})")
+        t = self.cfg.tracking
+        if t.facing_check_frames > 0 and t.facing_label not in self.labels:
+            raise InputError(f"skeleton config: field 'tracking.facing_label' names '{t.facing_label}', which "
+                             f"carries no blob (blobs: {', '.join(body.blob_labels)}); "
+                             "tracking.facing_check_frames: 0 turns the face check off")
         #: {camera: [parts]} whose l_/r_ labels the last frame's view association exchanged
         self.view_swaps: dict[str, list[str]] = {}
         pr = self.cfg.prior
@@ -877,6 +930,9 @@ class _Estimator:
         self.timings_ms: dict[str, float] = {}  # per-stage ms of the last update
         self._start_verification()
         self._verify_left = 0
+        self._facing: list[float] = []  # the face check's correlations, newest last
+        #: frames at which the face check turned the body round (stamps, ns)
+        self.facing_flips: list[int] = []
 
     def _arm_reach(self) -> float:
         """Largest head-blob to hand-blob distance of the body model, m (fully stretched
@@ -978,6 +1034,8 @@ class _Estimator:
         self.last_observed = obs
         if self._verify_left > 0 and len(obs) >= cfg.min_blobs:
             self._verify_facing(stamp_ns, obs)
+        elif self.status == STATUS_TRACKING and cfg.facing_check_frames > 0:
+            self._check_facing(stamp_ns, blobs_by_camera, obs)
         return self._estimate(stamp_ns)
 
     def check_reseed_joints(self, joints: np.ndarray) -> np.ndarray:
@@ -1016,6 +1074,39 @@ class _Estimator:
         self._cost_current = self._cost_flipped = 0.0
         self._flip_theta: np.ndarray | None = None
 
+    def _mirrored(self, obs: Mapping[str, Blob3D]) -> dict[str, Blob3D]:
+        """The blobs with their left and right labels exchanged (l_ <-> r_; others kept)."""
+        out = {}
+        for lab, blob in obs.items():
+            m = _mirror_label(lab)
+            if m in self.labels:
+                out[m] = Blob3D(m, blob.mean, blob.cov, blob.cameras)
+        return out
+
+    def _check_facing(self, stamp_ns: int, blobs_by_camera, obs: Mapping[str, Blob3D]) -> None:
+        """The face check while tracking (:func:`facing_correlation` of the ``tracking.facing_label``
+        blob at the estimated pose): when the mean of the last ``tracking.facing_check_frames``
+        correlations is below ``tracking.facing_flip_correlation``, the body faces the wrong way
+        with its left/right labels swapped to match; it is turned round as in the verification
+        (the rest pose at heading + π fitted to the blobs with their labels exchanged)."""
+        t = self.cfg.tracking
+        link = int(self.kin.blob_links[self.kin.blob_index[t.facing_label]])
+        blobs = {name: b for name, bl in blobs_by_camera.items() for b in bl if b.label == t.facing_label}
+        r = facing_correlation(blobs, self.cameras, self.body.forward_kinematics(self.theta)[link],
+                               t.facing_min_size_ratio)
+        if r is None:
+            return
+        self._facing = (self._facing + [r])[-t.facing_check_frames:]
+        if len(self._facing) < t.facing_check_frames or np.mean(self._facing) >= t.facing_flip_correlation:
+            return
+        mirrored = self._mirrored(obs)
+        yaw = _heading(exp_so3(self.theta[3:6])) + math.pi
+        theta_f, _ = self._init_fit(self._blob_targets(mirrored), self._rest_at(self.theta[0:3], yaw))
+        self._initialise(stamp_ns, theta_f, mirrored)
+        self.last_observed = mirrored
+        self._facing = []
+        self.facing_flips.append(int(stamp_ns))
+
     def _verify_facing(self, stamp_ns: int, obs: Mapping[str, Blob3D]) -> None:
         """Right after initialisation the heading may be off by π with left and right
         swapped (a symmetric pose looks the same). For ``tracking.verify_frames`` frames
@@ -1024,11 +1115,7 @@ class _Estimator:
         costlier. If the accumulated cost of the mirrored fit falls below
         ``flip_cost_ratio`` times the current one, the tracker re-initialises mirrored."""
         f, t = self.cfg.fit, self.cfg.tracking
-        mirrored = {}
-        for lab, blob in obs.items():
-            m = _mirror_label(lab)
-            if m in self.labels:
-                mirrored[m] = Blob3D(m, blob.mean, blob.cov, blob.cameras)
+        mirrored = self._mirrored(obs)
         targets, targets_m = self._blob_targets(obs), self._blob_targets(mirrored)
         _, cost_c, _ = fit_pose(
             self.body, self.theta, targets, self.kin.rest, self.rest_sigma_dof, None, 1.0, f.max_nfev,
