@@ -23,7 +23,7 @@ from artrack.skeleton import (
     PointTarget,
     SkeletonConfig,
     _exchange_sides,
-    facing_correlation,
+    facing_agreement,
     fit_pose,
     load_skeleton_config,
     make_estimator,
@@ -470,6 +470,8 @@ def test_config_file_and_errors(body, cameras):
         load_skeleton_config({"tracking": {"facing_check_frames": -1}})
     with pytest.raises(InputError, match="facing_min_size_ratio"):
         load_skeleton_config({"tracking": {"facing_min_size_ratio": 0.5}})
+    with pytest.raises(InputError, match="facing_flip_cosine"):
+        load_skeleton_config({"tracking": {"facing_flip_cosine": -2.0}})
     with pytest.raises(InputError, match="facing_label"):
         make_estimator("baseline", body, cameras, {"tracking": {"facing_label": "tail"}})
     est = make_estimator("baseline", body, cameras, None)
@@ -740,24 +742,31 @@ def _head_sized(body, cameras, blobs, theta):
     return out
 
 
-def test_facing_correlation_reads_the_facing_from_the_head_blob_sizes(body, cameras):
-    """facing_correlation: larger head blobs (scaled to 1 m) in the views the head's forward axis
-    points to give a correlation near +1, the same sizes seen by a head turned round near -1;
-    fewer than three views, or sizes alike from every side, say nothing (None)."""
+def test_facing_agreement_reads_the_facing_from_the_head_blob_sizes(body, cameras):
+    """facing_agreement: head blobs larger (scaled to 1 m) in the views the head's forward axis
+    points to give a cosine near +1; the same sizes for a head turned round near -1, for a head
+    turned a quarter round near 0 (a sideways error is no reason to turn round); fewer than three
+    views, or sizes alike from every side, say nothing (None)."""
     theta = _test_pose(body)
     link = body.link_names.index("head")
     blobs = _head_sized(body, cameras, blobs_2d(body, cameras, theta), theta)
     head = {name: b for name, bl in blobs.items() for b in bl if b.label == "head"}
     cams = {c.name: c for c in cameras}
     E = body.forward_kinematics(theta)[link]
-    assert facing_correlation(head, cams, E) > 0.8
-    turned = E.copy()
-    turned[:3, :3] = E[:3, :3] @ np.diag([-1.0, -1.0, 1.0])  # the head turned by pi about its own z
-    assert facing_correlation(head, cams, turned) < -0.8
-    assert facing_correlation(dict(list(head.items())[:2]), cams, E) is None
+
+    def turned(angle):
+        c, s = math.cos(angle), math.sin(angle)
+        out = E.copy()
+        out[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ E[:3, :3]  # about the world's z
+        return out
+
+    assert facing_agreement(head, cams, E) > 0.9
+    assert facing_agreement(head, cams, turned(math.pi)) < -0.9
+    assert abs(facing_agreement(head, cams, turned(math.pi / 2))) < 0.3
+    assert facing_agreement(dict(list(head.items())[:2]), cams, E) is None
     # sizes alike from every side (at most 2x apart at 1 m): no facing to read
     alike = {name: Blob2D("head", b.mean, b.cov, pixel_count=200) for name, b in head.items()}
-    assert facing_correlation(alike, cams, E) is None
+    assert facing_agreement(alike, cams, E) is None
 
 
 def test_a_body_tracked_facing_backwards_is_turned_round(body, cameras):

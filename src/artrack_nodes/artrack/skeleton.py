@@ -89,7 +89,7 @@ the rest pose rotated about z is fitted for each candidate, held near that headi
 ``tracking.verify_frames`` frames after any initialisation the
 mirrored hypothesis (heading + π, left <-> right) is fitted too and taken over if
 it explains the labelled blobs much better (knees and elbows bend one way only).
-While tracking, the face check (``tracking.facing_*``, :func:`facing_correlation`)
+While tracking, the face check (``tracking.facing_*``, :func:`facing_agreement`)
 turns a body that faces backwards, with every left/right label swapped to match,
 round: the head's skin blob is the face in the views it looks at and only the
 neck behind it, so its sizes tell the facing that the blob positions cannot.
@@ -192,11 +192,11 @@ class TrackingConfig:
     relocalise_from_blobs: bool = True
     verify_frames: int = 20
     flip_cost_ratio: float = 0.5
-    #: the face check (:func:`facing_correlation`): over this many frames while tracking (0 = off) ...
+    #: the face check (:func:`facing_agreement`): over this many frames while tracking (0 = off) ...
     facing_check_frames: int = 15
-    #: ... a mean correlation below this between the ``facing_label`` blob's size and the estimated
-    #: facing turns the body round (heading + π, left <-> right)
-    facing_flip_correlation: float = -0.3
+    #: ... a mean cosine below this between the estimated facing and the way the ``facing_label``
+    #: blob's sizes point turns the body round (heading + π, left <-> right)
+    facing_flip_cosine: float = -0.7
     #: ... counted only in frames whose largest size is at least this many times the smallest
     facing_min_size_ratio: float = 2.0
     #: the blob whose size shows the facing: the head's skin is the face from the front, the neck
@@ -371,6 +371,8 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
     if out.tracking.facing_check_frames < 0:
         raise InputError("skeleton config: field 'tracking.facing_check_frames' must be >= 0 (0 = off)")
+    if not -1.0 <= out.tracking.facing_flip_cosine <= 1.0:
+        raise InputError("skeleton config: field 'tracking.facing_flip_cosine' must be in [-1, 1]")
     if not out.tracking.facing_min_size_ratio >= 1.0:
         raise InputError("skeleton config: field 'tracking.facing_min_size_ratio' must be >= 1")
     return out
@@ -747,34 +749,42 @@ def _heading(R_root: np.ndarray) -> float:
     return math.atan2(float(R_root[1, 0]), float(R_root[0, 0]))
 
 
-def facing_correlation(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera],
-                       world_from_link: np.ndarray, min_size_ratio: float = 2.0) -> float | None:
-    """How well a part's 2-D blob sizes agree with the way the part faces (the face check of
-    ``tracking.facing_*``): Pearson's correlation, over the views whose blob it is (``blobs``:
-    camera -> that part's Blob2D), between the blob's size at 1 m (pixel count x the squared
-    distance from the camera centre to the link origin) and the cosine of the horizontal angle
-    between the link's forward (+x) axis and the direction to that camera.
+def facing_agreement(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera],
+                     world_from_link: np.ndarray, min_size_ratio: float = 2.0) -> float | None:
+    """Whether a part's 2-D blob sizes say it faces the way it is posed (the face check of
+    ``tracking.facing_*``): the cosine of the horizontal angle between the link's forward (+x) axis
+    and the direction the sizes point to. ``blobs``: camera -> that part's Blob2D; each view's
+    size at 1 m is its pixel count x the squared distance from the camera centre to the link
+    origin, and the sizes are fitted as ``a + c · u_k`` (u_k: the horizontal unit direction from
+    the link to camera k, least squares): c is the way the larger blobs lie.
 
     The head's skin-coloured blob is the face in the views it looks at and only the neck in the
-    views behind it (the hair covers the rest): about 4x larger (synthetic seeds 1, 12: correlation
-    with the true facing 0.79, 0.85). A body tracked facing backwards, with every left/right label
-    swapped to match, explains the blobs' positions as well as the right one, but not these
-    sizes. world_from_link: (4, 4) the link's pose. None with fewer than three views, or when the
-    largest size is less than ``min_size_ratio`` times the smallest (the part looks alike from
-    every side: no facing to read)."""
+    views behind it (the hair covers the rest): about 4x larger at 1 m (synthetic seeds 1, 12:
+    correlation with the cosine of each camera's bearing from the true facing 0.79, 0.85). A body
+    tracked facing backwards, with every left/right label swapped to match, explains the blobs'
+    positions as well as the right one, but not these sizes: about -1 here; a heading off sideways
+    gives about 0. Pixel counts must be real ones (shrinking with the squared distance).
+    world_from_link: (4, 4) the link's pose. None with fewer than three views, views in a line,
+    or the largest size less than ``min_size_ratio`` times the smallest (alike from every side)."""
     R, origin = world_from_link[:3, :3], world_from_link[:3, 3]
     forward = R[:2, 0] / max(float(np.linalg.norm(R[:2, 0])), 1e-9)
-    size, cosine = [], []
+    size, rows = [], []
     for name, blob in blobs.items():
         to_camera = np.asarray(cameras[name].center, float) - origin
         horizontal = float(np.linalg.norm(to_camera[:2]))
         if horizontal < 1e-6:
             continue
         size.append(blob.pixel_count * float(to_camera @ to_camera))
-        cosine.append(float(forward @ to_camera[:2]) / horizontal)
-    if len(size) < 3 or max(size) < min_size_ratio * max(min(size), 1e-12) or np.ptp(cosine) <= 1e-6:
+        rows.append([1.0, *(to_camera[:2] / horizontal)])
+    if len(size) < 3 or max(size) < min_size_ratio * max(min(size), 1e-12):
         return None
-    return float(np.corrcoef(size, cosine)[0, 1])
+    A = np.array(rows)
+    if np.linalg.matrix_rank(A, tol=1e-3) < 3:
+        return None
+    coef = np.linalg.lstsq(A, np.asarray(size) / np.mean(size), rcond=None)[0]
+    c = coef[1:]
+    norm = float(np.linalg.norm(c))
+    return None if norm < 1e-9 else float(forward @ c) / norm
 
 
 # =========================================================================== start-up
@@ -930,7 +940,7 @@ class _Estimator:
         self.timings_ms: dict[str, float] = {}  # per-stage ms of the last update
         self._start_verification()
         self._verify_left = 0
-        self._facing: list[float] = []  # the face check's correlations, newest last
+        self._facing: list[float] = []  # the face check's cosines, newest last
         #: frames at which the face check turned the body round (stamps, ns)
         self.facing_flips: list[int] = []
 
@@ -1084,20 +1094,21 @@ class _Estimator:
         return out
 
     def _check_facing(self, stamp_ns: int, blobs_by_camera, obs: Mapping[str, Blob3D]) -> None:
-        """The face check while tracking (:func:`facing_correlation` of the ``tracking.facing_label``
+        """The face check while tracking (:func:`facing_agreement` of the ``tracking.facing_label``
         blob at the estimated pose): when the mean of the last ``tracking.facing_check_frames``
-        correlations is below ``tracking.facing_flip_correlation``, the body faces the wrong way
-        with its left/right labels swapped to match; it is turned round as in the verification
-        (the rest pose at heading + π fitted to the blobs with their labels exchanged)."""
+        cosines is below ``tracking.facing_flip_cosine``, the body faces backwards with its
+        left/right labels swapped to match; it is turned round as in the verification (the rest
+        pose at heading + π fitted to the blobs with their labels exchanged). A heading off
+        sideways (cosine near 0) is left to the fit: turning it round would not help."""
         t = self.cfg.tracking
         link = int(self.kin.blob_links[self.kin.blob_index[t.facing_label]])
         blobs = {name: b for name, bl in blobs_by_camera.items() for b in bl if b.label == t.facing_label}
-        r = facing_correlation(blobs, self.cameras, self.body.forward_kinematics(self.theta)[link],
-                               t.facing_min_size_ratio)
+        r = facing_agreement(blobs, self.cameras, self.body.forward_kinematics(self.theta)[link],
+                             t.facing_min_size_ratio)
         if r is None:
             return
         self._facing = (self._facing + [r])[-t.facing_check_frames:]
-        if len(self._facing) < t.facing_check_frames or np.mean(self._facing) >= t.facing_flip_correlation:
+        if len(self._facing) < t.facing_check_frames or np.mean(self._facing) >= t.facing_flip_cosine:
             return
         mirrored = self._mirrored(obs)
         yaw = _heading(exp_so3(self.theta[3:6])) + math.pi
