@@ -73,11 +73,15 @@ STAGES = [  # (timing key, column) in pipeline order
 
 def oracle_blobs(body, cameras, theta, stamp_ns: int, rng, sigma_px: float) -> dict[str, list[Blob2D]]:
     """Perfect 2-D blobs: the true blob Gaussians projected into every camera (first order, as the
-    priors), occluded or off-image ones left out, the means perturbed by ``sigma_px`` noise."""
+    priors), occluded or off-image ones left out, the means perturbed by ``sigma_px`` noise. Pixel
+    counts: the area of the uniform ellipse with that covariance, 4π √det (so they shrink with
+    distance as real blobs do; the face check reads facing from them, and the model's Gaussians
+    look alike from every side)."""
     p0, p1, radius, link, _ = body.capsules(theta)
     occluders = [(body.link_names[k], a, b, r) for a, b, r, k in zip(p0, p1, radius, link, strict=True)]
     projected = project_priors(body.blobs3d(theta), cameras, stamp_ns, occluders=occluders)
-    return {cam: [Blob2D(p.label, p.mean + sigma_px * rng.standard_normal(2), p.cov, pixel_count=100)
+    return {cam: [Blob2D(p.label, p.mean + sigma_px * rng.standard_normal(2), p.cov,
+                         pixel_count=max(1, round(4.0 * np.pi * float(np.sqrt(max(np.linalg.det(p.cov), 0.0))))))
                   for p in priors if p.visibility == VISIBLE]
             for cam, priors in projected.items()}
 
