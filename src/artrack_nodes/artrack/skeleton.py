@@ -940,7 +940,6 @@ class _Estimator:
         self.timings_ms: dict[str, float] = {}  # per-stage ms of the last update
         self._start_verification()
         self._verify_left = 0
-        self._facing: list[float] = []  # the face check's cosines, newest last
         #: frames at which the face check turned the body round (stamps, ns)
         self.facing_flips: list[int] = []
 
@@ -1083,6 +1082,7 @@ class _Estimator:
         self._verify_n = 0
         self._cost_current = self._cost_flipped = 0.0
         self._flip_theta: np.ndarray | None = None
+        self._facing: list[float] = []  # the face check's cosines, newest last (a new track starts afresh)
 
     def _mirrored(self, obs: Mapping[str, Blob3D]) -> dict[str, Blob3D]:
         """The blobs with their left and right labels exchanged (l_ <-> r_; others kept)."""
