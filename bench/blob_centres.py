@@ -47,14 +47,6 @@ from artrack.body_model import load_body_model  # noqa: E402
 DIAGNOSIS = Path(__file__).resolve().parent / "label_diagnosis.py"
 
 
-def model_centres(body) -> dict[str, np.ndarray]:
-    """The body model's blob centres in their links' frames, m (``centre: auto`` resolved)."""
-    means, _ = body.blob_gaussians(body.rest_pose())
-    T = body.forward_kinematics(body.rest_pose())
-    return {lab: (np.linalg.inv(T[body.link_names.index(lab)]) @ np.append(means[k], 1.0))[:3]
-            for k, lab in enumerate(body.blob_labels)}
-
-
 def mm_cells(v) -> str:
     return ("".join(f"{x:6.0f}" for x in v) if v is not None else "-").rjust(22)
 
@@ -95,7 +87,7 @@ def main() -> int:
     if unknown:
         print(f"--labels: {unknown} carry no blob in the body model (blobs: {body.blob_labels})", file=sys.stderr)
         return 2
-    current = model_centres(body)
+    current = {lab: body.link(lab).blob.centre for lab in body.blob_labels}  # link frame, m ('auto' resolved)
     per_seed = {}
     for seed in args.seeds:
         print(f"seed {seed} ...", file=sys.stderr, flush=True)

@@ -105,10 +105,7 @@ def main() -> int:
     labels = list(body.blob_labels)
     names = list(body.joint_names)
     J = {n: names.index(n) for n in ("head", "l_wrist", "r_wrist", "l_knee", "r_knee")}
-    rest_means, _ = body.blob_gaussians(body.rest_pose())
-    rest_T = body.forward_kinematics(body.rest_pose())
-    model_local = {lab: (np.linalg.inv(rest_T[body.link_names.index(lab)]) @ np.append(rest_means[k], 1.0))[:3]
-                   for k, lab in enumerate(labels)}
+    model_local = {lab: body.link(lab).blob.centre for lab in labels}  # link frame, m ('auto' resolved)
     offsets: dict[str, list[np.ndarray]] = {lab: [] for lab in labels}
     rows = []
     renderer = Renderer(body, scene.cameras, cfg.seed) if args.support else None
