@@ -20,7 +20,7 @@ the current centre and the calibrated one (current + mean offset, link frame, m)
 paste into config/body_model.yaml (``--labels`` only), and one JSON line. Deterministic; run
 from the repository root (about 30 s a seed at 320x240)::
 
-    .venv/bin/python bench/blob_centres.py                       # seeds 40 41 42, torso and head
+    .venv/bin/python bench/blob_centres.py                       # seeds 40 41 42, pelvis, torso and head
     .venv/bin/python bench/blob_centres.py --labels torso head l_shin r_shin --width 640 --height 480
 
 After pasting, a second run should print offsets near zero (the check that the measurement
@@ -73,7 +73,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[40, 41, 42],
                     help="synthetic scene seeds to measure on (keep them apart from the ones you score)")
-    ap.add_argument("--labels", nargs="+", default=["torso", "head"],
+    ap.add_argument("--labels", nargs="+", default=["pelvis", "torso", "head"],
                     help="labels whose calibrated centres are printed as YAML")
     ap.add_argument("--true-priors", type=int, default=30, metavar="FRAME",
                     help="re-seed the skeleton with the true pose at every frame from this one")

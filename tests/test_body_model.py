@@ -40,7 +40,7 @@ def test_structure(body):
     assert body.n_dof == 6 + 8 * 3 + 6
     assert body.lower.shape == body.upper.shape == (body.n_dof,)
     assert np.all(body.lower <= body.upper)
-    assert set(body.blob_labels) == {"head", "torso", "l_hand", "r_hand", "l_thigh", "r_thigh",
+    assert set(body.blob_labels) == {"pelvis", "head", "torso", "l_hand", "r_hand", "l_thigh", "r_thigh",
                                      "l_shin", "r_shin"}
     assert body.within_limits(body.rest_pose())
 
@@ -115,7 +115,7 @@ def test_batch_equals_single(body):
     L = np.linalg.norm(jb[..., 4, :] - jb[..., 5, :], axis=-1)
     assert np.allclose(L, 0.25)
     means, covs = body.blob_gaussians(theta[:3])
-    assert means.shape == (3, 8, 3) and covs.shape == (3, 8, 3, 3)
+    assert means.shape == (3, 9, 3) and covs.shape == (3, 9, 3, 3)
     assert np.allclose(covs, np.swapaxes(covs, -1, -2))
 
 
