@@ -1090,7 +1090,7 @@ class _Estimator:
         for lab, blob in obs.items():
             m = _mirror_label(lab)
             if m in self.labels:
-                out[m] = Blob3D(m, blob.mean, blob.cov, blob.cameras)
+                out[m] = dataclasses.replace(blob, label=m)
         return out
 
     def _check_facing(self, stamp_ns: int, blobs_by_camera, obs: Mapping[str, Blob3D]) -> None:
@@ -1481,7 +1481,7 @@ class BaselineEstimator(_Estimator):
                 own = moves[[links[k] for k in swapped]].any(axis=0)
                 others = moves[[links[k] for k in obs if k not in swapped] + [0]].any(axis=0)
                 free = np.flatnonzero(own & ~others)
-                out.append(({k: Blob3D(k, b.mean, b.cov, b.cameras) for k, b in source.items()}, free, swapped))
+                out.append(({k: dataclasses.replace(b, label=k) for k, b in source.items()}, free, swapped))
         return out
 
     def _step(self, stamp_ns, obs):
