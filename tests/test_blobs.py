@@ -361,13 +361,39 @@ def test_occluded_prior_is_not_reported():
     priors.append(Prior2D("l_foot", np.full(2, np.nan), np.full((2, 2), np.nan), 0.0, BEHIND_CAMERA))
     blobs = by_label(tracker.step(img, priors))
     assert "r_hand" not in blobs
-    assert set(blobs) == {"torso", "head", "l_hand"}
+    assert set(blobs) - {SKIN} == {"torso", "head", "l_hand"}  # (+ the unlabelled r_hand as 'skin')
     assert np.linalg.norm(blobs["l_hand"].mean - np.array(parts["l_hand"][1])) < 1.0
     # r_hand's pixels are left unlabelled, not given to the torso
     assert np.all(tracker.support_map[render(parts, 70)[1]["r_hand"]] != LABELS.index("torso"))
     # behind the camera: the same
     blobs = by_label(tracker.step(img, priors_for(parts, head=BEHIND_CAMERA)))
     assert "head" not in blobs and "r_hand" in blobs
+
+
+def test_a_hand_that_left_its_prior_is_reported_as_unlabelled_skin():
+    """``lost_skin_blobs``: the left hand jumps 70 px up, out of its prior's gate, so its label finds
+    nothing; the tracker then also reports the unlabelled skin-coloured foreground ('skin' blobs, as
+    at start-up), from which the 3-D stage can find the hand again. Labelled skin (head, right hand)
+    is not reported again, and nothing is while every skin label finds its pixels, or with 0."""
+    for n in (3, 0):
+        tracker = make_tracker(lost_skin_blobs=n)
+        seed_with_moving_person(tracker)
+        parts = default_parts()
+        for t in range(3):
+            img, _ = render(parts, 67 + t)
+            blobs = tracker.step(img, priors_for(parts))
+            assert SKIN not in by_label(blobs)
+        moved = {**parts, "l_hand": ("disc", (108.0, 80.0), 8.0, SKIN_BGR)}
+        img, _ = render(moved, 70)
+        blobs = tracker.step(img, priors_for(parts))
+        assert "l_hand" not in by_label(blobs)
+        skin = [b for b in blobs if b.label == SKIN]
+        if n:
+            assert len(skin) == 1, [b.mean for b in skin]
+            assert np.linalg.norm(skin[0].mean - np.array([108.0, 80.0])) < 1.0
+            assert abs(skin[0].pixel_count - np.pi * 64) < 0.2 * np.pi * 64
+        else:
+            assert skin == []
 
 
 def test_distractor_far_from_the_prior_does_not_steal_the_label():

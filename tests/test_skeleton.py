@@ -801,3 +801,59 @@ def test_a_body_tracked_facing_backwards_is_turned_round(body, cameras):
             assert np.linalg.norm(e.joints - truth, axis=1).mean() < 0.03
         else:
             assert not est.facing_flips and heading_error(e) > 150
+
+
+def _skin_blobs_at(cameras, points):
+    """{camera: ['skin' Blob2D]}: unlabelled skin blobs (3 cm spread) at 3-D ``points`` in every view."""
+    out = {}
+    for cam in cameras:
+        m, J = cam.project_jacobian(np.asarray(points, float).reshape(-1, 3))
+        out[cam.name] = [Blob2D("skin", m[k], J[k] @ (np.eye(3) * 0.03**2) @ J[k].T, pixel_count=300)
+                         for k in range(len(m))]
+    return out
+
+
+def test_a_lost_hand_is_reacquired_from_unlabelled_skin_blobs(body, cameras):
+    """tracking.reacquire_*: the left hand rises overhead in one frame, faster than its prior, so its
+    2-D labels find nothing and the blob trackers report the unlabelled skin they see ('skin' blobs).
+    Where those meet within the arm's reach of the left shoulder the hand is found again and the arm
+    follows; a skin point at the face (near the observed head blob) and one out of reach (another
+    person's hand) are not taken. With reacquire_labels: [] the hand stays where it was lost."""
+    down = _test_pose(body)
+    up = down.copy()
+    up[body.dof_slice("l_upper_arm")] = [2.45, -0.15, 0.0]  # the default motion's wave, overhead
+    up[body.dof_slice("l_forearm")] = [0.24]
+    labels = body.blob_labels
+    hand_up = body.blob_centres(up)[labels.index("l_hand")]
+    face = body.blob_centres(up)[labels.index("head")] + np.array([0.06, 0.0, 0.0])
+    far = hand_up + np.array([0.0, -2.5, -0.6])
+    skin = _skin_blobs_at(cameras, [face, hand_up, far])
+    lost = {c: bl + skin[c] for c, bl in blobs_2d(body, cameras, up, hide=("l_hand",)).items()}
+    wrist = body.joint_names.index("l_wrist")
+    for labels_cfg in (["l_hand", "r_hand"], []):
+        est = make_estimator("baseline", body, cameras, {"tracking": {"reacquire_labels": labels_cfg}})
+        for k in range(3):
+            e = est.update(stamp(k), blobs_2d(body, cameras, down))
+        for k in range(3, 5):
+            e = est.update(stamp(k), lost)
+        err = float(np.linalg.norm(e.joints[wrist] - body.joint_positions(up)[wrist]))
+        if labels_cfg:
+            assert est.reacquired == ["l_hand"]
+            assert err < 0.05, err
+            assert np.linalg.norm(e.joints - body.joint_positions(up), axis=1).mean() < 0.03
+        else:
+            assert est.reacquired == [] and err > 0.5, err
+    # only skin at the face and out of reach: nothing is taken
+    est = make_estimator("baseline", body, cameras, None)
+    for k in range(3):
+        est.update(stamp(k), blobs_2d(body, cameras, down))
+    skin = _skin_blobs_at(cameras, [face, far])
+    est.update(stamp(3), {c: bl + skin[c] for c, bl in blobs_2d(body, cameras, up, hide=("l_hand",)).items()})
+    assert est.reacquired == []
+
+
+def test_reacquire_config_errors(body, cameras):
+    with pytest.raises(InputError, match="tracking.reacquire_labels"):
+        make_estimator("baseline", body, cameras, {"tracking": {"reacquire_labels": ["l_wing"]}})
+    with pytest.raises(InputError, match="tracking.reacquire_separation_m"):
+        load_skeleton_config({"tracking": {"reacquire_separation_m": -1.0}})

@@ -87,6 +87,12 @@ their outline as foreground); labelled tracking starts with
 the first priors and falls back to start-up when priors stop and every label has
 been unseen for more than ``temporal_max_missed`` frames.
 
+Lost parts. The spatial gates trust the prior, so a hand that moved faster than its
+prediction finds nothing. While tracking, whenever a label of the skin colour class has
+no pixels in this view, the tracker also reports up to ``lost_skin_blobs`` unlabelled
+skin-coloured foreground components (label ``skin``, as at start-up); the 3-D stage
+triangulates them and re-acquires the hand (``skeleton`` ``tracking.reacquire_*``).
+
 Weak points: a person standing still through the whole seed is background
 until they move (the ghost they leave then heals within about
 ``background_ghost_frames`` frames where its outline is clear, else after
@@ -243,6 +249,10 @@ class BlobTrackerConfig:
     startup_max_skin_blobs: int = 3
     #: at start-up, skip skin components larger than this fraction of the foreground (clothing)
     startup_skin_max_fraction: float = 0.35
+    #: while tracking, when a label of the skin colour class finds no pixels in this view, also report at
+    #: most this many unlabelled skin-coloured foreground components (label 'skin', largest first, as at
+    #: start-up): the 3-D stage re-acquires a lost hand from them; 0 = never
+    lost_skin_blobs: int = 3
     #: report start-up blobs while the background is still seeding once the seed holds this many
     #: samples (0 = never: wait for the complete seed). A running median of a few samples cannot
     #: tell a person who hardly moved from the room: the foreground is then only the person's
@@ -291,7 +301,8 @@ class BlobTrackerConfig:
         for name in ("background_seed_frames", "background_seed_stride"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise bad(name, "must be a positive integer")
-        for name in ("min_blob_pixels", "startup_max_skin_blobs", "temporal_max_missed", "foreground_median",
+        for name in ("min_blob_pixels", "startup_max_skin_blobs", "lost_skin_blobs", "temporal_max_missed",
+                     "foreground_median",
                      "background_static_frames", "background_ghost_frames", "startup_min_seed_samples",
                      "startup_settle_frames", "colour_relearn_frames"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
@@ -912,6 +923,7 @@ class BlobTracker2D:
         self._learn_colours(core_colours)
         if models:
             self._check_stale_colours(core_fg)  # after the learning: a class marked here is bootstrapped next frame
+        blobs += self._lost_skin_blobs(img, fg, support, seen)
         self.timings_ms = {"classification": 1e3 * (t1 - t0), "statistics": 1e3 * (time.perf_counter() - t1)}
         return blobs, support >= 0
 
@@ -1027,34 +1039,57 @@ class BlobTracker2D:
         support[ys, xs] = 0
         self.support_labels.append(FOREGROUND)
 
-        skin = self.colour_model(SKIN)
-        is_skin = skin.distance2(colours, cfg) <= cfg.colour_gate**2
-        if not np.any(is_skin):
-            return blobs, np.zeros((H, W), bool)
+        for cx, cy in self._skin_components(img, xs, ys, colours, cfg.startup_max_skin_blobs,
+                                            cfg.startup_skin_max_fraction * xs.size):
+            blobs.append(self._blob_from_pixels(SKIN, cx, cy, colour_features(img[cy, cx])))
+            support[cy, cx] = len(self.support_labels)
+            self.support_labels.append(SKIN)
+        return blobs, np.zeros((H, W), bool)
+
+    def _skin_components(self, img: np.ndarray, xs: np.ndarray, ys: np.ndarray, colours: np.ndarray,
+                         max_blobs: int, max_area: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The largest 8-connected components of the skin-coloured pixels among (xs, ys) (work px,
+        colour features ``colours``): at most ``max_blobs``, each of at least the smallest blob's
+        pixel count and at most ``max_area`` pixels (larger ones, clothing of a skin-like colour,
+        are skipped). Returns [(xs, ys)] of each component, largest first."""
+        cfg = self.config
+        is_skin = self.colour_model(SKIN).distance2(colours, cfg) <= cfg.colour_gate**2
+        if max_blobs <= 0 or not np.any(is_skin):
+            return []
         sx, sy = xs[is_skin], ys[is_skin]
         bx, by = int(sx.min()), int(sy.min())
         skin_mask = np.zeros((int(sy.max()) - by + 1, int(sx.max()) - bx + 1), np.uint8)
         skin_mask[sy - by, sx - bx] = 1
         _, sk_lab, sk_stats, _ = cv2.connectedComponentsWithStats(skin_mask, connectivity=8)
         areas = sk_stats[1:, cv2.CC_STAT_AREA]
-        order = np.argsort(-areas, kind="stable") + 1
-        max_area = cfg.startup_skin_max_fraction * xs.size
-        for j in order:
-            if len(blobs) > cfg.startup_max_skin_blobs:
-                break
+        min_px = self._min_pixels()
+        out = []
+        for j in np.argsort(-areas, kind="stable") + 1:
             area = sk_stats[j, cv2.CC_STAT_AREA]
-            if area < min_px:
+            if len(out) >= max_blobs or area < min_px:
                 break
             if area > max_area:
                 continue
             x, y, w, h = (int(sk_stats[j, q]) for q in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
                                                          cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
             cy, cx = np.nonzero(sk_lab[y:y + h, x:x + w] == j)
-            cx, cy = cx + x + bx, cy + y + by
-            blobs.append(self._blob_from_pixels(SKIN, cx, cy, colour_features(img[cy, cx])))
-            support[cy, cx] = len(self.support_labels)
-            self.support_labels.append(SKIN)
-        return blobs, np.zeros((H, W), bool)
+            out.append((cx + x + bx, cy + y + by))
+        return out
+
+    def _lost_skin_blobs(self, img: np.ndarray, fg: np.ndarray, support: np.ndarray, seen: set) -> list[Blob2D]:
+        """While tracking: the unlabelled skin-coloured foreground components (``lost_skin_blobs``,
+        label 'skin') when a label of the skin colour class is not among the labels ``seen`` in this view,
+        else []. ``support``: this frame's label image (work px, -1 unlabelled)."""
+        cfg = self.config
+        lost = [lab for lab in self.labels if self.colour_classes[lab] == SKIN and lab not in seen]
+        if cfg.lost_skin_blobs <= 0 or not lost:
+            return []
+        ys, xs = np.nonzero(fg & (support < 0))
+        if xs.size < self._min_pixels():
+            return []
+        comps = self._skin_components(img, xs, ys, colour_features(img[ys, xs]), cfg.lost_skin_blobs,
+                                      cfg.startup_skin_max_fraction * np.count_nonzero(fg))
+        return [self._blob_from_pixels(SKIN, cx, cy, colour_features(img[cy, cx])) for cx, cy in comps]
 
     def _blob_from_pixels(self, label: str, xs: np.ndarray, ys: np.ndarray, colours: np.ndarray) -> Blob2D:
         """Blob2D (input px) from pixel coordinates (N,) and their colour features (N, 3)."""

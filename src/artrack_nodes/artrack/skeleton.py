@@ -93,6 +93,12 @@ While tracking, the face check (``tracking.facing_*``, :func:`facing_agreement`)
 turns a body that faces backwards, with every left/right label swapped to match,
 round: the head's skin blob is the face in the views it looks at and only the
 neck behind it, so its sizes tell the facing that the blob positions cannot.
+A hand lost by its 2-D labels (one that moved faster than its prediction, so the
+gates around the prior found nothing) is re-acquired (``tracking.reacquire_*``,
+:meth:`_Estimator._reacquire`) where the views' unlabelled skin blobs meet within
+the arm's reach of its shoulder, away from the other observed blobs; the baseline
+first fits the arm alone to it, since the robust fit would take a target that far
+from the old pose for an outlier.
 ``STATUS_LOST`` after ``tracking.lost_after_frames`` consecutive frames with fewer
 than ``tracking.min_blobs`` usable blobs (triangulated; for the Kalman tracker:
 passing the innovation gate); while lost, ``predict`` carries no blobs (so the
@@ -202,6 +208,13 @@ class TrackingConfig:
     #: the blob whose size shows the facing: the head's skin is the face from the front, the neck
     #: from behind (the hair covers the rest)
     facing_label: str = "head"
+    #: parts re-acquired when lost (:meth:`_Estimator._reacquire`): a part of these without a 3-D blob
+    #: seen in two or more views takes the point where the views' unlabelled skin blobs meet ...
+    reacquire_labels: list = field(default_factory=lambda: ["l_hand", "r_hand"])
+    #: ... if that point lies farther than this from every other observed 3-D blob, m ...
+    reacquire_separation_m: float = 0.15
+    #: ... and within this many times the part's reach (the bone chain from its shoulder) of its shoulder
+    reacquire_reach_margin: float = 1.1
 
 
 def _default_rest_sigmas() -> dict[str, float]:
@@ -373,6 +386,12 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'tracking.facing_check_frames' must be >= 0 (0 = off)")
     if not -1.0 <= out.tracking.facing_flip_cosine <= 1.0:
         raise InputError("skeleton config: field 'tracking.facing_flip_cosine' must be in [-1, 1]")
+    if out.tracking.reacquire_separation_m < 0 or out.tracking.reacquire_reach_margin < 0:
+        raise InputError("skeleton config: fields 'tracking.reacquire_separation_m' and "
+                         "'tracking.reacquire_reach_margin' must be >= 0")
+    if not all(isinstance(p, str) and p for p in out.tracking.reacquire_labels):
+        raise InputError("skeleton config: field 'tracking.reacquire_labels' must be a list of blob labels "
+                         "(e.g. [l_hand, r_hand]; [] = off)")
     if not out.tracking.facing_min_size_ratio >= 1.0:
         raise InputError("skeleton config: field 'tracking.facing_min_size_ratio' must be >= 1")
     return out
@@ -805,7 +824,7 @@ def match_skin_blobs(
     gate_sigma: float = 3.0,
     gate_px: float = 4.0,
     missing_view_penalty_px: float = 10.0,
-) -> list[tuple[np.ndarray, float, tuple[str, ...]]]:
+) -> list[tuple[np.ndarray, float, tuple[str, ...], Blob3D]]:
     """Match unlabelled skin blobs across views into at most ``max_points`` 3-D points.
 
     Every pair of blobs from two cameras whose rays meet (midpoint in front of both,
@@ -814,7 +833,8 @@ def match_skin_blobs(
     nearest blob of every other camera and triangulated; its score is the mean
     reprojection error (px) plus ``missing_view_penalty_px`` per camera with skin
     blobs that it does not use. Candidates are taken greedily by score, never
-    sharing a 2-D blob. Returns [(X (3,) world m, score px, camera names)], best first.
+    sharing a 2-D blob. Returns [(X (3,) world m, score px, camera names, the triangulated
+    Blob3D (label 'skin'))], best first.
     """
     names = sorted(c for c, bl in skin_by_camera.items() if len(bl) and c in cameras)
     if len(names) < 2:
@@ -824,7 +844,7 @@ def match_skin_blobs(
         uv = np.array([np.asarray(b.mean, float) for b in skin_by_camera[c]]).reshape(-1, 2)
         o, d = cameras[c].rays(uv)
         rays[c] = (o, d)
-    cands: dict[frozenset, tuple[np.ndarray, float, tuple[str, ...]]] = {}
+    cands: dict[frozenset, tuple[np.ndarray, float, tuple[str, ...], Blob3D]] = {}
     for ci, cj in itertools.combinations(names, 2):
         for a in range(len(skin_by_camera[ci])):
             for b in range(len(skin_by_camera[cj])):
@@ -868,13 +888,13 @@ def match_skin_blobs(
                     uv, _ = cameras[c].project(blob.mean[None])
                     errs.append(float(np.linalg.norm(uv[0] - np.asarray(skin_by_camera[c][k].mean, float))))
                 score = float(np.mean(errs)) + missing_view_penalty_px * (len(names) - len(members))
-                cands[key] = (blob.mean, score, tuple(sorted(members)))
+                cands[key] = (blob.mean, score, tuple(sorted(members)), blob)
     out = []
     used: set = set()
-    for key, (X, score, cams) in sorted(cands.items(), key=lambda kv: kv[1][1]):
+    for key, (X, score, cams, blob) in sorted(cands.items(), key=lambda kv: kv[1][1]):
         if any(m in used for m in key):
             continue
-        out.append((X, score, cams))
+        out.append((X, score, cams, blob))
         used |= set(key)
         if len(out) >= max_points:
             break
@@ -911,6 +931,13 @@ class _Estimator:
             raise InputError(f"skeleton config: field 'tracking.facing_label' names '{t.facing_label}', which "
                              f"carries no blob (blobs: {', '.join(body.blob_labels)}); "
                              "tracking.facing_check_frames: 0 turns the face check off")
+        unknown = sorted(set(t.reacquire_labels) - self.labels)
+        if unknown:
+            raise InputError(f"skeleton config: field 'tracking.reacquire_labels' names '{unknown[0]}', which "
+                             f"carries no blob (blobs: {', '.join(body.blob_labels)})")
+        #: re-acquired part -> (its shoulder: the origin of the top link of its chain below the nearest
+        #: ancestor with a blob, the chain's length down to the part's blob centre, m)
+        self._reacquire_chain = {lab: self._chain_below_blob(lab) for lab in t.reacquire_labels}
         #: {camera: [parts]} whose l_/r_ labels the last frame's view association exchanged
         self.view_swaps: dict[str, list[str]] = {}
         pr = self.cfg.prior
@@ -942,6 +969,8 @@ class _Estimator:
         self._verify_left = 0
         #: frames at which the face check turned the body round (stamps, ns)
         self.facing_flips: list[int] = []
+        #: parts re-acquired from unlabelled skin blobs in the last update (see :meth:`_reacquire`)
+        self.reacquired: list[str] = []
 
     def _arm_reach(self) -> float:
         """Largest head-blob to hand-blob distance of the body model, m (fully stretched
@@ -967,6 +996,59 @@ class _Estimator:
                 length += float(np.linalg.norm(body.links[j].offset))
             reach = max(reach, length + float(np.linalg.norm(p[chain[-1]] - head)))
         return reach if reach > 0 else 1.0
+
+    def _chain_below_blob(self, label: str) -> tuple[int, float]:
+        """(top link, length m) of ``label``'s chain: the links from the blob's own up to, not
+        including, the nearest ancestor that carries a blob (for a hand: hand, forearm, upper arm
+        below the torso); the length runs from the top link's origin (the shoulder) through the
+        bones to the blob centre."""
+        kin, body = self.kin, self.body
+        i = int(kin.blob_links[kin.blob_index[label]])
+        length = float(np.linalg.norm(kin.blob_local[kin.blob_index[label]]))
+        carriers = set(int(k) for k in kin.blob_links)
+        while body.links[i].parent is not None and int(kin.parent[i]) not in carriers:
+            length += float(np.linalg.norm(body.links[i].offset))
+            i = int(kin.parent[i])
+        return i, length
+
+    def _reacquire(self, blobs_by_camera, obs: dict[str, Blob3D]) -> list[str]:
+        """Lost parts found again (ALGORITHMS.md §1: the 2-D trackers follow the 3-D priors, so a
+        part whose prior has left it, e.g. a hand that rose faster than the prediction, is not
+        found by them again). A part of ``tracking.reacquire_labels`` without a 3-D blob seen in two
+        or more views this frame takes the best 3-D point where the views' unlabelled skin blobs
+        (label 'skin': the blob trackers report them while a skin label finds nothing,
+        ``lost_skin_blobs``) meet (:func:`match_skin_blobs`), among the points farther than
+        ``reacquire_separation_m`` from every other observed 3-D blob (the head, the other hand)
+        and within ``reacquire_reach_margin`` times the part's reach of its shoulder in the current
+        pose. The nearest point to the shoulder goes first; parts take distinct points. Adds the
+        found blobs to ``obs`` (in place) and returns their labels."""
+        t = self.cfg.tracking
+        lost = [lab for lab in t.reacquire_labels if lab not in obs or len(obs[lab].cameras) < 2]
+        if not lost:
+            return []
+        skin = {c: [b for b in bl if b.label == SKIN] for c, bl in blobs_by_camera.items()}
+        if sum(1 for bl in skin.values() if bl) < 2:
+            return []
+        points = match_skin_blobs(skin, self.cameras)
+        others = [b.mean for lab, b in obs.items() if lab not in lost]
+        points = [p for p in points
+                  if all(np.linalg.norm(p[0] - m) > t.reacquire_separation_m for m in others)]
+        p, _ = self.kin.poses(self.theta)
+        pairs = []
+        for lab in lost:
+            top, reach = self._reacquire_chain[lab]
+            for k, pt in enumerate(points):
+                d = float(np.linalg.norm(pt[0] - p[top]))
+                if d <= t.reacquire_reach_margin * reach:
+                    pairs.append((d, lab, k))
+        found, used = [], set()
+        for _, lab, k in sorted(pairs):
+            if lab in found or k in used:
+                continue
+            obs[lab] = dataclasses.replace(points[k][3], label=lab)
+            found.append(lab)
+            used.add(k)
+        return found
 
     # -- measurements ----------------------------------------------------------
     def measurement_cov(self, blob: Blob3D) -> np.ndarray:
@@ -1029,6 +1111,7 @@ class _Estimator:
             if self.theta is None:
                 self.stamp_ns = stamp_ns
                 return BodyEstimate.empty(self.body.joint_names, stamp_ns, STATUS_INITIALIZING)
+        self.reacquired = self._reacquire(blobs_by_camera, obs) if self.status == STATUS_TRACKING else []
         t1 = time.perf_counter()
         self._step(stamp_ns, obs)  # may add its own stages to timings_ms
         stages = sum(v for k, v in self.timings_ms.items() if k != "triangulation")
@@ -1471,18 +1554,36 @@ class BaselineEstimator(_Estimator):
         Each comes with the dofs that move the exchanged blobs' links and no other observed
         blob's link (the hips and knees for the legs), and the exchanged labels."""
         out = []
-        moves = self.body.dof_moves_link
         for group in self.cfg.fit.mirror_groups:
             swapped = {side + part for part in group if "l_" + part in obs and "r_" + part in obs
                        for side in ("l_", "r_")}
             if swapped:  # each label takes its mirror's blob (the labels keep obs' order)
                 source = {k: obs[_mirror_label(k)] if k in swapped else obs[k] for k in obs}
-                links = {k: int(self.kin.blob_links[self.kin.blob_index[k]]) for k in obs}
-                own = moves[[links[k] for k in swapped]].any(axis=0)
-                others = moves[[links[k] for k in obs if k not in swapped] + [0]].any(axis=0)
-                free = np.flatnonzero(own & ~others)
+                free = self._own_dofs(swapped, obs)
                 out.append(({k: dataclasses.replace(b, label=k) for k, b in source.items()}, free, swapped))
         return out
+
+    def _own_dofs(self, labels, obs: Mapping[str, Blob3D]) -> np.ndarray:
+        """The dofs that move the links of the blobs ``labels`` and no other observed blob's link
+        (nor the root): for the legs the hips and knees, for a hand its shoulder, elbow and wrist."""
+        moves = self.body.dof_moves_link
+        link = {k: int(self.kin.blob_links[self.kin.blob_index[k]]) for k in set(obs) | set(labels)}
+        own = moves[[link[k] for k in labels]].any(axis=0)
+        others = moves[[link[k] for k in obs if k not in labels] + [0]].any(axis=0)
+        return np.flatnonzero(own & ~others)
+
+    def _reach_for(self, labels, obs: Mapping[str, Blob3D], theta: np.ndarray) -> np.ndarray:
+        """``theta`` with the parts ``labels`` (just re-acquired, :meth:`_reacquire`) moved onto their
+        new blobs by their own dofs alone (plain least squares, the rest of the body held): from the
+        old pose, far off, the robust fit would take the new blob for an outlier."""
+        f = self.cfg.fit
+        free = self._own_dofs(labels, obs)
+        if not free.size:
+            return theta
+        theta, _, _ = fit_pose(self.body, theta, self._blob_targets({k: obs[k] for k in labels}), self.kin.rest,
+                               self.rest_sigma_dof, theta, f.previous_sigma_rad, f.max_nfev, 0.0,
+                               tolerance=f.tolerance, free_dofs=free)
+        return theta
 
     def _step(self, stamp_ns, obs):
         f = self.cfg.fit
@@ -1496,9 +1597,10 @@ class BaselineEstimator(_Estimator):
             # Nothing observed: the pose coasts (a fit to the priors alone leaves the root free to wander).
             self._set_pose(self.theta, self.cov_theta, self.poses, dt)
             return
+        start = self._reach_for(self.reacquired, obs, self.theta) if self.reacquired else self.theta
         theta, cost, cov = fit_pose(
             self.body,
-            self.theta,
+            start,
             targets,
             self.kin.rest,
             self.rest_sigma_dof,
