@@ -148,7 +148,7 @@ def line_runs(body, cameras):
     n = 40
     thetas = [pose_at("line", k / FPS, body) for k in range(n + 1)]
     runs = {}
-    configs = {"baseline": {"fit": {"axis_sigma_rad": 0.0, "mirror_groups": []}},
+    configs = {"baseline": {"fit": {"axis_sigma_rad": 0.0, "mirror_groups": [], "predict_velocity_gain": 0.0}},
                "baseline+axis": {"fit": {"mirror_groups": []}}, "kinematic": None}
     for name, config in configs.items():
         kind = name.split("+")[0]
@@ -216,7 +216,7 @@ def test_predict_is_ahead_for_moving_hand(body, line_runs):
     assert 0.5 < np.median(lead) < 1.5
     assert np.mean(gain) > 0  # the prediction is nearer the next position than the last estimate
     # The prediction's blobs carry the (growing) prediction covariance, and the baseline's
-    # zero-velocity prediction stays where it was.
+    # zero-velocity prediction (fit.predict_velocity_gain 0) stays where it was.
     assert predictions[-1].stamp_ns == stamp(len(estimates))
     b_est, b_pred = runs["baseline"][0][-1], runs["baseline"][1][-1]
     np.testing.assert_allclose(_hand(b_pred), _hand(b_est))
@@ -853,7 +853,39 @@ def test_a_lost_hand_is_reacquired_from_unlabelled_skin_blobs(body, cameras):
 
 
 def test_reacquire_config_errors(body, cameras):
+    with pytest.raises(InputError, match="fit.predict_velocity_links"):
+        make_estimator("baseline", body, cameras, {"fit": {"predict_velocity_links": ["l_wing"]}})
+    with pytest.raises(InputError, match="fit.predict_velocity_gain"):
+        load_skeleton_config({"fit": {"predict_velocity_smoothing": 0.0}})
     with pytest.raises(InputError, match="tracking.reacquire_labels"):
         make_estimator("baseline", body, cameras, {"tracking": {"reacquire_labels": ["l_wing"]}})
     with pytest.raises(InputError, match="tracking.reacquire_separation_m"):
         load_skeleton_config({"tracking": {"reacquire_separation_m": -1.0}})
+
+
+def test_baseline_prediction_extrapolates_the_joint_velocities(body, cameras):
+    """fit.predict_velocity_*: the baseline's prediction moves the joint dofs and the root's position
+    on by predict_velocity_gain times their smoothed velocity (a leg swinging forward is predicted
+    part of the way to where it goes, so the projected priors lag it less); the root's rotation is
+    not extrapolated, and a (re)initialisation forgets the velocity."""
+    thetas = []
+    for k in range(12):  # the right knee flexes and the body walks along x at constant rates
+        theta = _test_pose(body)
+        theta[0] += 0.03 * k
+        theta[body.dof_slice("r_shin")] = [0.3 + 0.05 * k]
+        thetas.append(theta)
+    knee, ankle = body.joint_names.index("r_knee"), body.joint_names.index("r_ankle")
+    lead = {}
+    for gain in (0.0, 0.5, 1.0):
+        est = make_estimator("baseline", body, cameras, {"fit": {"predict_velocity_gain": gain}})
+        for k in range(11):
+            e = est.update(stamp(k), blobs_2d(body, cameras, thetas[k]))
+        pred = est.predict(stamp(11))
+        step = body.joint_positions(thetas[11]) - body.joint_positions(thetas[10])
+        lead[gain] = [float((pred.joints[j] - e.joints[j]) @ step[j] / (step[j] @ step[j])) for j in (knee, ankle)]
+        np.testing.assert_allclose(pred.links[0].rotation, e.links[0].rotation, atol=1e-12)
+    np.testing.assert_allclose(lead[0.0], 0.0, atol=1e-9)  # zero velocity: the prediction stays
+    np.testing.assert_allclose(lead[0.5], 0.5, atol=0.1)  # half a frame ahead
+    np.testing.assert_allclose(lead[1.0], 1.0, atol=0.15)  # a whole frame ahead
+    est._initialise(stamp(11), thetas[11], {})
+    np.testing.assert_allclose(est.predict(stamp(12)).joints, body.joint_positions(thetas[11]), atol=1e-9)

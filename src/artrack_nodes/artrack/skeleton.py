@@ -15,7 +15,10 @@ Kinds
     plus weak rest-pose and previous-pose regularisers on the joint dofs so that
     unobserved dofs (elbow swivel, feet) stay sane. No temporal filtering beyond
     that warm start / weak previous-pose term. ``predict`` returns the last
-    estimate (zero-velocity model) with covariance inflated by (σ_v Δt)².
+    estimate moved on by ``fit.predict_velocity_gain`` times its smoothed joint and
+    root-position velocities (0: the zero-velocity model; the root's rotation is held)
+    with covariance inflated by (σ_v Δt)²: a constant-velocity prediction damped by
+    half, since the per-frame fits' velocities are noisy (gain 1 overshoots).
     Optional floor contact (``fit.ground_sigma_m`` > 0, :class:`GroundContact`, also in
     the initial fits): a person standing or walking on the floor keeps the lower of the
     body's lowest rest points (the ankles) at its rest height above z = ``fit.floor_z_m``
@@ -237,6 +240,13 @@ class FitConfig:
     max_nfev: int = 40
     tolerance: float = 1e-3
     predict_velocity_sigma: float = 1.0
+    #: the baseline's prediction extrapolates the joint dofs and the root's position by this times
+    #: dt times their smoothed velocity (0: zero velocity, the pose at t)
+    predict_velocity_gain: float = 0.5
+    #: exponential-smoothing weight of the newest frame difference in that velocity
+    predict_velocity_smoothing: float = 0.5
+    #: links whose dofs are extrapolated ([] = all joints and the root's position)
+    predict_velocity_links: list = field(default_factory=list)
     robust_scale: float = 3.0
     edge_sigma_px: float = 1.0
     edge_min_found: int = 8
@@ -386,6 +396,9 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'tracking.facing_check_frames' must be >= 0 (0 = off)")
     if not -1.0 <= out.tracking.facing_flip_cosine <= 1.0:
         raise InputError("skeleton config: field 'tracking.facing_flip_cosine' must be in [-1, 1]")
+    if out.fit.predict_velocity_gain < 0 or not 0.0 < out.fit.predict_velocity_smoothing <= 1.0:
+        raise InputError("skeleton config: field 'fit.predict_velocity_gain' must be >= 0 and "
+                         "'fit.predict_velocity_smoothing' in (0, 1]")
     if out.tracking.reacquire_separation_m < 0 or out.tracking.reacquire_reach_margin < 0:
         raise InputError("skeleton config: fields 'tracking.reacquire_separation_m' and "
                          "'tracking.reacquire_reach_margin' must be >= 0")
@@ -931,6 +944,9 @@ class _Estimator:
             raise InputError(f"skeleton config: field 'tracking.facing_label' names '{t.facing_label}', which "
                              f"carries no blob (blobs: {', '.join(body.blob_labels)}); "
                              "tracking.facing_check_frames: 0 turns the face check off")
+        unknown = sorted(set(f.predict_velocity_links) - set(body.link_names))
+        if unknown:
+            raise InputError(f"skeleton config: field 'fit.predict_velocity_links' names unknown link '{unknown[0]}'")
         unknown = sorted(set(t.reacquire_labels) - self.labels)
         if unknown:
             raise InputError(f"skeleton config: field 'tracking.reacquire_labels' names '{unknown[0]}', which "
@@ -1478,6 +1494,8 @@ class BaselineEstimator(_Estimator):
     def reset(self) -> None:
         super().reset()
         self._axis: tuple[np.ndarray, np.ndarray] | None = None  # this frame's horizontal-axis cue
+        self._dof_velocity: np.ndarray | None = None  # smoothed d theta / dt (joint dofs, root position)
+        self._theta_before: np.ndarray | None = None
 
     def _triangulate(self, blobs_by_camera, priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
         """As the base class, and this frame's torso-shape heading cue (``fit.axis_*``) from the
@@ -1527,6 +1545,7 @@ class BaselineEstimator(_Estimator):
                 for sign in (1.0, -1.0)]
 
     def _initialise(self, stamp_ns, theta, obs):
+        self._dof_velocity = None
         self._set_pose(theta, np.eye(self.body.n_dof) * 1e-2, None, 0.0)
 
     def _set_pose(self, theta, cov_theta, previous_links, dt):
@@ -1537,6 +1556,18 @@ class BaselineEstimator(_Estimator):
         self.blob_cov = Jb @ cov_theta @ np.swapaxes(Jb, 1, 2)
         p, R = self.kin.poses(theta)
         L = self.kin.n_links
+        f = self.cfg.fit
+        if previous_links is not None and dt > 0 and self._theta_before is not None:
+            v = (theta - self._theta_before) / dt
+            v[3:6] = 0.0  # the root's rotation vector is not differenced (it wraps at pi)
+            if f.predict_velocity_links:
+                keep = np.zeros(v.size, bool)
+                for name in f.predict_velocity_links:
+                    keep[self.body.dof_slice(name)] = True
+                v[~keep] = 0.0
+            a = f.predict_velocity_smoothing
+            self._dof_velocity = v if self._dof_velocity is None else a * v + (1.0 - a) * self._dof_velocity
+        self._theta_before = theta.copy()
         self.velocity, self.angular_velocity = np.zeros((L, 3)), np.zeros((L, 3))
         if previous_links is not None and dt > 0:
             p0, R0 = previous_links
@@ -1648,12 +1679,16 @@ class BaselineEstimator(_Estimator):
         link_cov = self.link_cov.copy()
         link_cov[:, :3, :3] += q * np.eye(3)
         zeros = np.zeros((L, 3))
+        theta = self.theta
+        gain = self.cfg.fit.predict_velocity_gain
+        if gain > 0 and self._dof_velocity is not None:
+            theta = np.clip(theta + gain * dt * self._dof_velocity, self.body.lower, self.body.upper)
         return BodyEstimate(
             int(stamp_ns),
             list(self.body.joint_names),
-            self.body.joint_positions(self.theta),
-            self._links(self.theta, zeros, zeros, link_cov),
-            self._blob_list(self.theta, self.blob_cov + q * np.eye(3)),
+            self.body.joint_positions(theta),
+            self._links(theta, zeros, zeros, link_cov),
+            self._blob_list(theta, self.blob_cov + q * np.eye(3)),
             self.status,
             float(self.quality),
         )
