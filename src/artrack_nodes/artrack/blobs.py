@@ -1081,8 +1081,7 @@ class BlobTracker2D:
         label 'skin') when a label of the skin colour class is not among the labels ``seen`` in this view,
         else []. ``support``: this frame's label image (work px, -1 unlabelled)."""
         cfg = self.config
-        lost = [lab for lab in self.labels if self.colour_classes[lab] == SKIN and lab not in seen]
-        if cfg.lost_skin_blobs <= 0 or not lost:
+        if cfg.lost_skin_blobs <= 0 or all(lab in seen for lab in self.labels if self.colour_classes[lab] == SKIN):
             return []
         ys, xs = np.nonzero(fg & (support < 0))
         if xs.size < self._min_pixels():

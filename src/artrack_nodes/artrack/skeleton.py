@@ -1100,6 +1100,7 @@ class _Estimator:
         constraints on the links, ALGORITHMS.md §2 "Fusion"; the Kalman estimators ignore them)."""
         stamp_ns = int(stamp_ns)
         self._edges = edges
+        self.reacquired = []
         self._check_cameras(blobs_by_camera)
         if self.stamp_ns is not None and stamp_ns < self.stamp_ns:
             self.reset()  # time went backwards (a bag looped): start again
