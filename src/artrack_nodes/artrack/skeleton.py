@@ -991,26 +991,16 @@ class _Estimator:
     def _arm_reach(self) -> float:
         """Largest head-blob to hand-blob distance of the body model, m (fully stretched
         arm: head blob to shoulder plus the bone chain down to the hand blob)."""
-        kin, body = self.kin, self.body
+        kin = self.kin
         if "head" not in kin.blob_index:
             return 1.0
         p, R = kin.poses(kin.rest)
         head = kin.blob_points(p, R)[kin.blob_index["head"]]
         reach = 0.0
         for hand in ("l_hand", "r_hand"):
-            if hand not in kin.blob_index:
-                continue
-            i = int(kin.blob_links[kin.blob_index[hand]])
-            chain, length = [], float(np.linalg.norm(kin.blob_local[kin.blob_index[hand]]))
-            while i > 0 and body.links[i].parent is not None:
-                chain.append(i)
-                i = int(kin.parent[i])
-                if i in kin.blob_links and body.links[i].name != hand:
-                    break
-            # chain: hand, forearm, upper arm ... up to a blob-carrying ancestor (the torso)
-            for j in chain[:-1]:
-                length += float(np.linalg.norm(body.links[j].offset))
-            reach = max(reach, length + float(np.linalg.norm(p[chain[-1]] - head)))
+            if hand in kin.blob_index:
+                shoulder, length = self._chain_below_blob(hand)
+                reach = max(reach, length + float(np.linalg.norm(p[shoulder] - head)))
         return reach if reach > 0 else 1.0
 
     def _chain_below_blob(self, label: str) -> tuple[int, float]:
@@ -1496,7 +1486,6 @@ class BaselineEstimator(_Estimator):
         super().reset()
         self._axis: tuple[np.ndarray, np.ndarray] | None = None  # this frame's horizontal-axis cue
         self._dof_velocity: np.ndarray | None = None  # smoothed d theta / dt (joint dofs, root position)
-        self._theta_before: np.ndarray | None = None
 
     def _triangulate(self, blobs_by_camera, priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
         """As the base class, and this frame's torso-shape heading cue (``fit.axis_*``) from the
@@ -1550,16 +1539,9 @@ class BaselineEstimator(_Estimator):
         self._set_pose(theta, np.eye(self.body.n_dof) * 1e-2, None, 0.0)
 
     def _set_pose(self, theta, cov_theta, previous_links, dt):
-        self.theta = theta
-        self.cov_theta = cov_theta
-        Jl, Jb = _pose_jacobians(self.body, theta)
-        self.link_cov = Jl @ cov_theta @ np.swapaxes(Jl, 1, 2)
-        self.blob_cov = Jb @ cov_theta @ np.swapaxes(Jb, 1, 2)
-        p, R = self.kin.poses(theta)
-        L = self.kin.n_links
         f = self.cfg.fit
-        if previous_links is not None and dt > 0 and self._theta_before is not None:
-            v = (theta - self._theta_before) / dt
+        if previous_links is not None and dt > 0:  # self.theta: the pose set last
+            v = (theta - self.theta) / dt
             v[3:6] = 0.0  # the root's rotation vector is not differenced (it wraps at pi)
             if f.predict_velocity_links:
                 keep = np.zeros(v.size, bool)
@@ -1568,7 +1550,13 @@ class BaselineEstimator(_Estimator):
                 v[~keep] = 0.0
             a = f.predict_velocity_smoothing
             self._dof_velocity = v if self._dof_velocity is None else a * v + (1.0 - a) * self._dof_velocity
-        self._theta_before = theta.copy()
+        self.theta = theta
+        self.cov_theta = cov_theta
+        Jl, Jb = _pose_jacobians(self.body, theta)
+        self.link_cov = Jl @ cov_theta @ np.swapaxes(Jl, 1, 2)
+        self.blob_cov = Jb @ cov_theta @ np.swapaxes(Jb, 1, 2)
+        p, R = self.kin.poses(theta)
+        L = self.kin.n_links
         self.velocity, self.angular_velocity = np.zeros((L, 3)), np.zeros((L, 3))
         if previous_links is not None and dt > 0:
             p0, R0 = previous_links
