@@ -125,7 +125,9 @@ def _test_pose(body):
 
 def test_baseline_recovers_known_pose_from_exact_blobs(body, cameras):
     theta = _test_pose(body)
-    est = make_estimator("baseline", body, cameras, None)
+    # every blob in every view: the body model's Gaussians (1.5x the tracker's blobs) of the legs
+    # overlap in some views here, which fit.overlap_parts would leave out
+    est = make_estimator("baseline", body, cameras, {"fit": {"overlap_parts": []}})
     for k in range(3):
         e = est.update(stamp(k), blobs_2d(body, cameras, theta))
     assert e.status == STATUS_TRACKING
@@ -534,7 +536,8 @@ def test_swapped_leg_labels_are_fitted_the_right_way_round(body, cameras):
     two trouser legs passing each other) is fitted with the l_ and r_ blobs of thighs and shins
     exchanged too, and the lower-cost fit wins: the legs stay where they are; without the test
     (mirror_groups []) the fit bends them across (checked: knees and ankles 8.6 vs 368 mm off).
-    Labels the right way round: the test changes nothing."""
+    Labels the right way round: the test changes nothing. (fit.overlap_parts off: the
+    body model's blob Gaussians, 1.5x the tracker's blobs, overlap in most views here.)"""
     theta = _test_pose(body)
     swap = {"l_thigh": "r_thigh", "r_thigh": "l_thigh", "l_shin": "r_shin", "r_shin": "l_shin"}
     swapped = {c: [Blob2D(swap.get(b.label, b.label), b.mean, b.cov, pixel_count=b.pixel_count) for b in bl]
@@ -543,7 +546,7 @@ def test_swapped_leg_labels_are_fitted_the_right_way_round(body, cameras):
     err, right = {}, {}
     for groups in ([], [["thigh", "shin"]]):
         for labels in ("right", "swapped"):
-            est = make_estimator("baseline", body, cameras, {"fit": {"mirror_groups": groups}})
+            est = make_estimator("baseline", body, cameras, {"fit": {"mirror_groups": groups, "overlap_parts": []}})
             est.update(stamp(0), blobs_2d(body, cameras, theta))  # initialised on the true blobs
             e = est.update(stamp(1), swapped if labels == "swapped" else blobs_2d(body, cameras, theta))
             if labels == "swapped":
@@ -558,6 +561,38 @@ def test_swapped_leg_labels_are_fitted_the_right_way_round(body, cameras):
         make_estimator("baseline", body, cameras, {"fit": {"mirror_groups": [["tail"]]}})
     with pytest.raises(InputError, match="mirror_groups"):
         make_estimator("baseline", body, cameras, {"fit": {"mirror_groups": ["thigh"]}})
+    with pytest.raises(InputError, match="fit.overlap_parts"):
+        make_estimator("baseline", body, cameras, {"fit": {"overlap_parts": ["tail"]}})
+    with pytest.raises(InputError, match="fit.overlap_parts"):
+        make_estimator("baseline", body, cameras, {"fit": {"overlap_parts": "shin"}})
+    with pytest.raises(InputError, match="fit.overlap_chi2"):
+        make_estimator("baseline", body, cameras, {"fit": {"overlap_chi2": -1.0}})
+
+
+def test_overlapping_leg_blobs_are_left_out_of_that_view(body, cameras):
+    """fit.overlap_parts: a view whose two shin blobs sit on each other (the legs passing)
+    gives neither shin to the triangulation; the other views still place both shins (3 cm). Off
+    with overlap_parts: []. (Legs spread: the body model's blob Gaussians overlap in most views at
+    rest, and the side views see the thighs one behind the other.)"""
+    theta = body.rest_pose()
+    theta[body.dof_slice("l_thigh").start] = 0.3
+    theta[body.dof_slice("r_thigh").start] = -0.3
+    blobs = blobs_2d(body, cameras, theta)
+    first = cameras[0].name
+    left = next(b for b in blobs[first] if b.label == "l_shin")
+    blobs[first] = [Blob2D(b.label, left.mean + [1.0, 0.0], b.cov, pixel_count=b.pixel_count)
+                    if b.label == "r_shin" else b for b in blobs[first]]
+    for parts, dropped in ((["shin"], {first: ["shin"]}), ([], {})):
+        est = make_estimator("baseline", body, cameras, {"fit": {"overlap_parts": parts}})
+        est.update(stamp(0), blobs)
+        assert est.overlap_drops == dropped
+        obs = est._triangulate(blobs, None)
+        assert (first in obs["r_shin"].cameras) == (not dropped)
+    true = dict(zip(body.blob_labels, body.blob_gaussians(theta)[0], strict=True))
+    est = make_estimator("baseline", body, cameras, {"fit": {"overlap_parts": ["shin"]}})
+    obs = est._triangulate(blobs, None)
+    for lab in ("l_shin", "r_shin"):
+        assert np.linalg.norm(obs[lab].mean - true[lab]) < 0.03
 
 
 def test_ground_contact_keeps_a_foot_on_the_floor(body):

@@ -9,7 +9,14 @@ import pytest
 
 from artrack.cameras import Camera
 from artrack.errors import InputError
-from artrack.triangulation import associate_views, blob_extent, midpoint, triangulate_blob, triangulate_blobs
+from artrack.triangulation import (
+    associate_views,
+    blob_extent,
+    drop_overlapping_pairs,
+    midpoint,
+    triangulate_blob,
+    triangulate_blobs,
+)
 from artrack.types import Blob2D, Blob3D
 
 K = np.array([[900.0, 0.0, 639.5], [0.0, 910.0, 359.5], [0.0, 0.0, 1.0]])
@@ -290,3 +297,39 @@ def test_associate_views_exchanges_the_pair_in_the_view_that_holds_it_the_wrong_
         assert kept == {}
     fixed, swapped = associate_views(blobs(set()), by_name, ["shin"], margin_chi2=4.0)
     assert swapped == {}
+
+
+def test_drop_overlapping_pairs_leaves_the_crossing_legs_to_the_views_that_tell_them_apart():
+    """Two shins 0.3 m apart nearly along cam01's (and cam03's) line of sight (8° off): there
+    they overlap, and a tracker that shares their pixels out by the priors reports both blobs
+    pulled to the middle. Triangulated as reported, both 3-D shins are pulled towards each
+    other; with the overlapping views left out, cam02 and cam04 (which see the pair side by
+    side) put each shin back. Views where the pair does not overlap, a pair with one blob only,
+    and ``max_chi2`` 0 are left alone."""
+    cams = ring_cameras()
+    axis = np.array([math.cos(math.radians(53)), math.sin(math.radians(53)), 0.0])
+    centre = np.array([0.0, 0.0, 0.5])
+    true = {"l_shin": centre + 0.15 * axis, "r_shin": centre - 0.15 * axis}
+    cov = np.diag([16.0, 400.0])  # 4 x 20 px: an upright shin
+    reported = {}
+    for cam in cams:
+        uv = {lab: cam.project(X)[0][0] for lab, X in true.items()}
+        mid = 0.5 * (uv["l_shin"] + uv["r_shin"])
+        if cam.name in ("cam01", "cam03"):  # overlapping there: both blobs pulled to the middle
+            uv = {lab: 0.8 * mid + 0.2 * m for lab, m in uv.items()}
+        reported[cam.name] = [Blob2D(lab, m, cov, pixel_count=200) for lab, m in uv.items()]
+        reported[cam.name].append(Blob2D("head", cam.project(np.array([0.0, 0.0, 1.6]))[0][0], cov, pixel_count=200))
+
+    kept, dropped = drop_overlapping_pairs(reported, ["shin"], 4.0)
+    assert dropped == {"cam01": ["shin"], "cam03": ["shin"]}
+    assert [b.label for b in kept["cam01"]] == ["head"] and len(kept["cam02"]) == 3
+    after, before = triangulate_blobs(kept, cams), triangulate_blobs(reported, cams)
+    for lab, X in true.items():
+        assert np.linalg.norm(after[lab].mean - X) < 1e-3
+        assert np.linalg.norm(before[lab].mean - X) > 0.01  # the merged views pull it to the middle (17 mm)
+        assert sorted(after[lab].cameras) == ["cam02", "cam04"]
+
+    assert drop_overlapping_pairs(reported, ["shin"], 0.0)[1] == {}
+    assert drop_overlapping_pairs(reported, ["thigh"], 4.0)[1] == {}
+    one_side = {c: [b for b in bl if b.label != "r_shin"] for c, bl in reported.items()}
+    assert drop_overlapping_pairs(one_side, ["shin"], 4.0)[1] == {}

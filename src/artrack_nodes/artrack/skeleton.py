@@ -36,7 +36,10 @@ Kinds
     labelled fit) and fitted in full only when the screen comes within ``fit.mirror_screen_ratio``
     of the labelled cost. Before that, per view (``measurement.view_association``, all
     estimators): a pair labelled the wrong way round in some views but not others is put back
-    by the rays that meet (``triangulation.associate_views``).
+    by the rays that meet (``triangulation.associate_views``); and before that (baseline), a pair
+    whose two 2-D blobs overlap in a view is left out of that view (``fit.overlap_parts``,
+    ``triangulation.drop_overlapping_pairs``): their pixels are shared out by the priors alone,
+    so the two blobs pull each other to the middle and the legs lose their motion as they pass.
 
 ``'kinematic'`` — the paper's cheap variant (§2.3, "15 % CPU"): one
     constant-acceleration Kalman filter per blob (paper Eq. 7; ``kalman.py``)
@@ -143,7 +146,14 @@ from .constraints import (
 from .errors import InputError
 from .kalman import ConstantAccelerationKF
 from .lie import inverse_se3, log_se3, skew
-from .triangulation import associate_views, blob_extent, midpoint, triangulate_blob, triangulate_blobs
+from .triangulation import (
+    associate_views,
+    blob_extent,
+    drop_overlapping_pairs,
+    midpoint,
+    triangulate_blob,
+    triangulate_blobs,
+)
 from .types import (
     STATUS_INITIALIZING,
     STATUS_LOST,
@@ -256,6 +266,11 @@ class FitConfig:
     axis_sigma_rad: float = 0.35
     axis_min_ratio: float = 1.3
     mirror_groups: list = field(default_factory=lambda: [["thigh", "shin"]])
+    #: l_/r_ parts left out of a view's triangulation where their two 2-D blobs overlap there
+    #: (squared Mahalanobis distance between the means under the summed covariances below
+    #: ``overlap_chi2``; :func:`artrack.triangulation.drop_overlapping_pairs`); [] = off
+    overlap_parts: list = field(default_factory=lambda: ["thigh", "shin"])
+    overlap_chi2: float = 4.0
     mirror_screen_ratio: float = 1.5
 
 
@@ -390,6 +405,12 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
                          "(without the side prefix, e.g. [thigh, shin])")
     if out.measurement.view_association_margin_chi2 < 0:
         raise InputError("skeleton config: field 'measurement.view_association_margin_chi2' must be >= 0")
+    parts = out.fit.overlap_parts
+    if not isinstance(parts, list) or not all(isinstance(p, str) and p for p in parts):
+        raise InputError("skeleton config: field 'fit.overlap_parts' must be a list of part names "
+                         "(e.g. [thigh, shin])")
+    if not out.fit.overlap_chi2 >= 0:
+        raise InputError("skeleton config: field 'fit.overlap_chi2' must be >= 0")
     if out.measurement.blob_cov not in ("shape+state", "state"):
         raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
     if out.tracking.facing_check_frames < 0:
@@ -934,7 +955,8 @@ class _Estimator:
         self._reach = self._arm_reach()
         sided = {lab[2:] for lab in body.blob_labels if lab[:2] == "l_" and "r_" + lab[2:] in body.blob_labels}
         for name, parts in (("fit.mirror_groups", {p for g in f.mirror_groups for p in g}),
-                            ("measurement.view_association", set(self.cfg.measurement.view_association))):
+                            ("measurement.view_association", set(self.cfg.measurement.view_association)),
+                            ("fit.overlap_parts", set(f.overlap_parts))):
             unknown = sorted(parts - sided)
             if unknown:
                 raise InputError(f"skeleton config: field '{name}' names part '{unknown[0]}', which has "
@@ -956,6 +978,7 @@ class _Estimator:
         self._reacquire_chain = {lab: self._chain_below_blob(lab) for lab in t.reacquire_labels}
         #: {camera: [parts]} whose l_/r_ labels the last frame's view association exchanged
         self.view_swaps: dict[str, list[str]] = {}
+        self.overlap_drops: dict[str, list[str]] = {}  # {camera: [parts left out there]} of the last frame
         pr = self.cfg.prior
         unknown = sorted(set(pr.rest_sigma_by_link) - set(body.link_names))
         if unknown:
@@ -1073,6 +1096,7 @@ class _Estimator:
     def _triangulate(self, blobs_by_camera, priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
         labelled = {c: [b for b in bl if b.label in self.labels] for c, bl in blobs_by_camera.items()}
         m = self.cfg.measurement
+        labelled = self._screen_views(labelled)  # before the association
         if m.view_association:
             labelled, self.view_swaps = associate_views(labelled, self.cameras, m.view_association,
                                                         m.view_association_margin_chi2)
@@ -1081,6 +1105,11 @@ class _Estimator:
 
     def _triangulation_priors(self, stamp_ns: int) -> dict[str, Blob3D] | None:
         return None
+
+    def _screen_views(self, labelled: dict[str, list[Blob2D]]) -> dict[str, list[Blob2D]]:
+        """The labelled 2-D blobs per camera that go on to the view association and the
+        triangulation (all of them here; the baseline leaves overlapping leg pairs out)."""
+        return labelled
 
     # -- update ----------------------------------------------------------------
     def update(self, stamp_ns: int, blobs_by_camera: Mapping[str, Sequence[Blob2D]], edges=None) -> BodyEstimate:
@@ -1486,6 +1515,14 @@ class BaselineEstimator(_Estimator):
         super().reset()
         self._axis: tuple[np.ndarray, np.ndarray] | None = None  # this frame's horizontal-axis cue
         self._dof_velocity: np.ndarray | None = None  # smoothed d theta / dt (joint dofs, root position)
+
+    def _screen_views(self, labelled: dict[str, list[Blob2D]]) -> dict[str, list[Blob2D]]:
+        """``fit.overlap_parts``: a pair whose two blobs overlap in a view is left out of it."""
+        f = self.cfg.fit
+        if not f.overlap_parts:
+            return labelled
+        labelled, self.overlap_drops = drop_overlapping_pairs(labelled, f.overlap_parts, f.overlap_chi2)
+        return labelled
 
     def _triangulate(self, blobs_by_camera, priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
         """As the base class, and this frame's torso-shape heading cue (``fit.axis_*``) from the

@@ -347,6 +347,45 @@ def triangulate_blobs(
     return {blob.label: blob for blob in _solve(problems, iterations) if blob is not None}
 
 
+def drop_overlapping_pairs(
+    blobs_by_camera: Mapping[str, Sequence[Blob2D]],
+    parts: Iterable[str],
+    max_chi2: float,
+) -> tuple[dict[str, list[Blob2D]], dict[str, list[str]]]:
+    """Leave a symmetric part pair out of the views where its two blobs overlap.
+
+    Where two look-alike parts (trouser legs) overlap in a view, their pixels are shared out by
+    the priors alone: the two blobs are pulled towards each other and say nothing about which
+    part is which. Triangulated, they drag both 3-D blobs to the middle, so the legs lose their
+    motion as they pass and come out of the crossing exchanged. For each part p of ``parts``, in
+    every view that sees both ``l_p`` and ``r_p``, the pair is dropped when the squared
+    Mahalanobis distance between their means under the sum of their covariances is below
+    ``max_chi2``; the other views and the body fit's priors carry the pair through (this
+    project's addition to the 3-D blobs of ALGORITHMS.md §1).
+
+    Returns (blobs_by_camera without the dropped blobs; {camera: [parts dropped there]}).
+    """
+    out = {c: list(bl) for c, bl in blobs_by_camera.items()}
+    dropped: dict[str, list[str]] = {}
+    if max_chi2 <= 0:
+        return out, dropped
+    for name in sorted(out):
+        by_label = {b.label: b for b in out[name] if _finite(b)}
+        drop = set()
+        for part in parts:
+            left, right = by_label.get("l_" + part), by_label.get("r_" + part)
+            if left is None or right is None:
+                continue
+            d = np.asarray(left.mean, float).reshape(2) - np.asarray(right.mean, float).reshape(2)
+            S = np.asarray(left.cov, float).reshape(2, 2) + np.asarray(right.cov, float).reshape(2, 2)
+            if float(d @ np.linalg.solve(S, d)) < max_chi2:
+                drop |= {left.label, right.label}
+                dropped.setdefault(name, []).append(part)
+        if drop:
+            out[name] = [b for b in out[name] if b.label not in drop]
+    return out, dropped
+
+
 def associate_views(
     blobs_by_camera: Mapping[str, Sequence[Blob2D]],
     cameras: Mapping[str, Camera],
