@@ -266,12 +266,12 @@ class FitConfig:
     axis_sigma_rad: float = 0.35
     axis_min_ratio: float = 1.3
     mirror_groups: list = field(default_factory=lambda: [["thigh", "shin"]])
+    mirror_screen_ratio: float = 1.5
     #: l_/r_ parts left out of a view's triangulation where their two 2-D blobs overlap there
     #: (squared Mahalanobis distance between the means under the summed covariances below
     #: ``overlap_chi2``; :func:`artrack.triangulation.drop_overlapping_pairs`); [] = off
     overlap_parts: list = field(default_factory=lambda: ["thigh", "shin"])
     overlap_chi2: float = 4.0
-    mirror_screen_ratio: float = 1.5
 
 
 @dataclass
