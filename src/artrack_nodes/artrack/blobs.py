@@ -1039,28 +1039,31 @@ class BlobTracker2D:
         support[ys, xs] = 0
         self.support_labels.append(FOREGROUND)
 
-        for cx, cy in self._skin_components(img, xs, ys, colours, cfg.startup_max_skin_blobs,
-                                            cfg.startup_skin_max_fraction * xs.size):
-            blobs.append(self._blob_from_pixels(SKIN, cx, cy, colour_features(img[cy, cx])))
+        for idx in self._skin_components(xs, ys, colours, cfg.startup_max_skin_blobs,
+                                         cfg.startup_skin_max_fraction * xs.size):
+            cx, cy = xs[idx], ys[idx]
+            blobs.append(self._blob_from_pixels(SKIN, cx, cy, colours[idx]))
             support[cy, cx] = len(self.support_labels)
             self.support_labels.append(SKIN)
         return blobs, np.zeros((H, W), bool)
 
-    def _skin_components(self, img: np.ndarray, xs: np.ndarray, ys: np.ndarray, colours: np.ndarray,
-                         max_blobs: int, max_area: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    def _skin_components(self, xs: np.ndarray, ys: np.ndarray, colours: np.ndarray,
+                         max_blobs: int, max_area: float) -> list[np.ndarray]:
         """The largest 8-connected components of the skin-coloured pixels among (xs, ys) (work px,
         colour features ``colours``): at most ``max_blobs``, each of at least the smallest blob's
         pixel count and at most ``max_area`` pixels (larger ones, clothing of a skin-like colour,
-        are skipped). Returns [(xs, ys)] of each component, largest first."""
+        are skipped). Returns each component's indices into xs / ys / colours, largest first."""
         cfg = self.config
         is_skin = self.colour_model(SKIN).distance2(colours, cfg) <= cfg.colour_gate**2
         if max_blobs <= 0 or not np.any(is_skin):
             return []
-        sx, sy = xs[is_skin], ys[is_skin]
+        skin_idx = np.flatnonzero(is_skin)
+        sx, sy = xs[skin_idx], ys[skin_idx]
         bx, by = int(sx.min()), int(sy.min())
         skin_mask = np.zeros((int(sy.max()) - by + 1, int(sx.max()) - bx + 1), np.uint8)
         skin_mask[sy - by, sx - bx] = 1
         _, sk_lab, sk_stats, _ = cv2.connectedComponentsWithStats(skin_mask, connectivity=8)
+        component = sk_lab[sy - by, sx - bx]  # each skin pixel's component
         areas = sk_stats[1:, cv2.CC_STAT_AREA]
         min_px = self._min_pixels()
         out = []
@@ -1070,10 +1073,7 @@ class BlobTracker2D:
                 break
             if area > max_area:
                 continue
-            x, y, w, h = (int(sk_stats[j, q]) for q in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
-                                                         cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
-            cy, cx = np.nonzero(sk_lab[y:y + h, x:x + w] == j)
-            out.append((cx + x + bx, cy + y + by))
+            out.append(skin_idx[component == j])
         return out
 
     def _lost_skin_blobs(self, img: np.ndarray, fg: np.ndarray, support: np.ndarray, seen: set) -> list[Blob2D]:
@@ -1086,9 +1086,10 @@ class BlobTracker2D:
         ys, xs = np.nonzero(fg & (support < 0))
         if xs.size < self._min_pixels():
             return []
-        comps = self._skin_components(img, xs, ys, colour_features(img[ys, xs]), cfg.lost_skin_blobs,
+        colours = colour_features(img[ys, xs])
+        comps = self._skin_components(xs, ys, colours, cfg.lost_skin_blobs,
                                       cfg.startup_skin_max_fraction * np.count_nonzero(fg))
-        return [self._blob_from_pixels(SKIN, cx, cy, colour_features(img[cy, cx])) for cx, cy in comps]
+        return [self._blob_from_pixels(SKIN, xs[idx], ys[idx], colours[idx]) for idx in comps]
 
     def _blob_from_pixels(self, label: str, xs: np.ndarray, ys: np.ndarray, colours: np.ndarray) -> Blob2D:
         """Blob2D (input px) from pixel coordinates (N,) and their colour features (N, 3)."""

@@ -969,6 +969,14 @@ class _Estimator:
         unknown = sorted(set(f.predict_velocity_links) - set(body.link_names))
         if unknown:
             raise InputError(f"skeleton config: field 'fit.predict_velocity_links' names unknown link '{unknown[0]}'")
+        #: (n_dof,) bool: the dofs whose velocity the baseline's prediction extrapolates (``fit.predict_velocity_*``);
+        #: the root's rotation vector is not differenced (it wraps at pi)
+        self._velocity_dofs = np.ones(body.n_dof, bool)
+        if f.predict_velocity_links:
+            self._velocity_dofs[:] = False
+            for name in f.predict_velocity_links:
+                self._velocity_dofs[body.dof_slice(name)] = True
+        self._velocity_dofs[3:6] = False
         unknown = sorted(set(t.reacquire_labels) - self.labels)
         if unknown:
             raise InputError(f"skeleton config: field 'tracking.reacquire_labels' names '{unknown[0]}', which "
@@ -1578,13 +1586,7 @@ class BaselineEstimator(_Estimator):
     def _set_pose(self, theta, cov_theta, previous_links, dt):
         f = self.cfg.fit
         if previous_links is not None and dt > 0:  # self.theta: the pose set last
-            v = (theta - self.theta) / dt
-            v[3:6] = 0.0  # the root's rotation vector is not differenced (it wraps at pi)
-            if f.predict_velocity_links:
-                keep = np.zeros(v.size, bool)
-                for name in f.predict_velocity_links:
-                    keep[self.body.dof_slice(name)] = True
-                v[~keep] = 0.0
+            v = np.where(self._velocity_dofs, (theta - self.theta) / dt, 0.0)
             a = f.predict_velocity_smoothing
             self._dof_velocity = v if self._dof_velocity is None else a * v + (1.0 - a) * self._dof_velocity
         self.theta = theta
