@@ -74,3 +74,5 @@ def test_launcher_restarts_a_crashing_node_and_ends_with_the_until_exit_node(tmp
     assert count.read_text() == "xxx", "started once and restarted twice"
     assert launcher.procs["sleeper"].poll() is not None, "the others are shut down when the player ends"
     assert (tmp_path / "logs" / "player.log").is_file()
+    assert not launcher.tmp.exists(), "the parameter files' temporary directory is removed"
+    assert not launcher.logs, "the log files are closed"

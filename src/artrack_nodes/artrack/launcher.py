@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import fnmatch
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -108,6 +109,7 @@ class Launcher:
         self.restarts_left = {s.name: s.restarts for s in specs}
         self.stopping = False
         self.exit_codes: dict[str, int] = {}
+        self.logs: list = []
 
     def _start(self, spec: NodeSpec) -> None:
         params = self.tmp / f"{spec.name}.yaml"
@@ -117,7 +119,8 @@ class Launcher:
         out = None
         if self.log_dir is not None:
             self.log_dir.mkdir(parents=True, exist_ok=True)
-            out = open(self.log_dir / f"{spec.name}.log", "ab")  # noqa: SIM115 - closed with the process
+            out = open(self.log_dir / f"{spec.name}.log", "ab")  # noqa: SIM115 - closed in shutdown()
+            self.logs.append(out)
         elif self.quiet:
             out = subprocess.DEVNULL
         self.procs[spec.name] = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT if out else None)
@@ -168,6 +171,8 @@ class Launcher:
         return None
 
     def shutdown(self, grace_s: float = 5.0) -> None:
+        """Stop every child (SIGINT, then SIGTERM, then SIGKILL), then close the log files and
+        remove the parameter files' temporary directory."""
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
             alive = [p for p in self.procs.values() if p.poll() is None]
             if not alive:
@@ -177,6 +182,10 @@ class Launcher:
             deadline = time.monotonic() + grace_s
             while time.monotonic() < deadline and any(p.poll() is None for p in alive):
                 time.sleep(0.05)
+        for log in self.logs:
+            log.close()
+        self.logs.clear()
+        shutil.rmtree(self.tmp, ignore_errors=True)
 
 
 def launch(graph_path: str, overrides: dict[str, Any] | None = None, timeout_s: float | None = None,
