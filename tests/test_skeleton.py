@@ -536,31 +536,38 @@ def test_swapped_leg_labels_are_fitted_the_right_way_round(body, cameras):
     two trouser legs passing each other) is fitted with the l_ and r_ blobs of thighs and shins
     exchanged too, and the lower-cost fit wins: the legs stay where they are; without the test
     (mirror_groups []) the fit bends them across (checked: knees and ankles 8.6 vs 368 mm off).
-    Labels the right way round: the test changes nothing. (fit.overlap_parts off: the
-    body model's blob Gaussians, 1.5x the tracker's blobs, overlap in most views here.)"""
+    Labels the right way round: the test changes nothing. With fit.mirror_prescreen_ratio 0 no
+    exchanged start passes the pre-screen, and the fit is the one without the test. (fit.overlap_parts
+    off: the body model's blob Gaussians, 1.5x the tracker's blobs, overlap in most views here.)"""
     theta = _test_pose(body)
     swap = {"l_thigh": "r_thigh", "r_thigh": "l_thigh", "l_shin": "r_shin", "r_shin": "l_shin"}
     swapped = {c: [Blob2D(swap.get(b.label, b.label), b.mean, b.cov, pixel_count=b.pixel_count) for b in bl]
                for c, bl in blobs_2d(body, cameras, theta).items()}
     legs = [body.joint_names.index(j) for j in ("l_knee", "r_knee", "l_ankle", "r_ankle")]
     err, right = {}, {}
-    for groups in ([], [["thigh", "shin"]]):
+    configs = {0: {"mirror_groups": []}, 1: {"mirror_groups": [["thigh", "shin"]]},
+               "no screen": {"mirror_prescreen_ratio": 0.0}}
+    for key, fit in configs.items():
         for labels in ("right", "swapped"):
-            est = make_estimator("baseline", body, cameras, {"fit": {"mirror_groups": groups, "overlap_parts": []}})
+            est = make_estimator("baseline", body, cameras, {"fit": {**fit, "overlap_parts": []}})
             est.update(stamp(0), blobs_2d(body, cameras, theta))  # initialised on the true blobs
             e = est.update(stamp(1), swapped if labels == "swapped" else blobs_2d(body, cameras, theta))
             if labels == "swapped":
-                err[len(groups)] = float(np.linalg.norm(e.joints[legs] - body.joint_positions(theta)[legs],
-                                                        axis=1).mean())
+                err[key] = float(np.linalg.norm(e.joints[legs] - body.joint_positions(theta)[legs], axis=1).mean())
             else:
-                right[len(groups)] = e.joints
+                right[key] = e.joints
     np.testing.assert_array_equal(right[1], right[0])
     assert err[1] < 0.03, err
     assert err[0] > 3 * err[1], err
+    assert err["no screen"] == err[0], err
     with pytest.raises(InputError, match="mirror_groups"):
         make_estimator("baseline", body, cameras, {"fit": {"mirror_groups": [["tail"]]}})
     with pytest.raises(InputError, match="mirror_groups"):
         make_estimator("baseline", body, cameras, {"fit": {"mirror_groups": ["thigh"]}})
+    with pytest.raises(InputError, match="mirror_prescreen_ratio"):
+        make_estimator("baseline", body, cameras, {"fit": {"mirror_prescreen_ratio": -1.0}})
+    with pytest.raises(InputError, match="max_nfev"):
+        make_estimator("baseline", body, cameras, {"fit": {"max_nfev": 0}})
     with pytest.raises(InputError, match="fit.overlap_parts"):
         make_estimator("baseline", body, cameras, {"fit": {"overlap_parts": ["tail"]}})
     with pytest.raises(InputError, match="fit.overlap_parts"):
@@ -677,6 +684,30 @@ def test_fit_pose_over_some_dofs_holds_the_others(body):
     _, cost_held, _ = fit_pose(body, moved, targets, free_dofs=free, **kw)
     _, cost_full, _ = fit_pose(body, moved, targets, **kw)
     assert cost_full < 1e-3 and cost_held > 1.0, (cost_full, cost_held)
+
+
+def test_fit_pose_evaluate_only_gives_the_cost_at_the_start(body):
+    """fit_pose(evaluate_only=True) (the leg screen's pre-screen) returns the start, unmoved, and the
+    cost scipy reports there, robust loss and regularisers included: equal to a fit stopped after its
+    first evaluation, and above the converged fit's cost."""
+    rng = np.random.default_rng(5)
+    truth = body.clip(body.rest_pose() + rng.normal(0.0, 0.2, body.n_dof))
+    truth[2] = 0.95
+    means, _ = body.blob_gaussians(truth)
+    T = body.forward_kinematics(truth)
+    targets = [PointTarget(int(link), (np.linalg.inv(T[link]) @ np.append(means[k], 1.0))[:3],
+                           means[k] + rng.normal(0.0, 0.02, 3), np.eye(3) / 0.02**2)
+               for k, link in enumerate(body.blob_links)]
+    start = body.clip(truth + rng.normal(0.0, 0.1, body.n_dof))
+    for scale in (3.0, 0.0):
+        kw = dict(rest=body.rest_pose(), rest_sigma=0.5, previous=start, previous_sigma=0.3, robust_scale=scale)
+        theta_e, cost_e, cov_e = fit_pose(body, start, targets, evaluate_only=True, **kw)
+        np.testing.assert_allclose(theta_e, start, atol=1e-6)
+        assert not cov_e.any()
+        _, cost_1, _ = fit_pose(body, start, targets, max_nfev=1, **kw)
+        _, cost_fit, _ = fit_pose(body, start, targets, max_nfev=100, **kw)
+        assert cost_e == pytest.approx(cost_1, rel=1e-12), scale
+        assert cost_fit < 0.5 * cost_e, (scale, cost_fit, cost_e)
 
 
 def test_exchange_sides_mirrors_the_legs_across_the_sagittal_plane(body):

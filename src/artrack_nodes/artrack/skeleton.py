@@ -267,6 +267,9 @@ class FitConfig:
     axis_min_ratio: float = 1.3
     mirror_groups: list = field(default_factory=lambda: [["thigh", "shin"]])
     mirror_screen_ratio: float = 1.5
+    #: the screen itself runs only when the cost of its start (the labelled fit's legs exchanged, no
+    #: fit) is below this times the labelled fit's cost (a large value: always)
+    mirror_prescreen_ratio: float = 10.0
     #: l_/r_ parts left out of a view's triangulation where their two 2-D blobs overlap there
     #: (squared Mahalanobis distance between the means under the summed covariances below
     #: ``overlap_chi2``; :func:`artrack.triangulation.drop_overlapping_pairs`); [] = off
@@ -390,10 +393,13 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'startup.start_xy' must be two finite numbers (x, y), m")
     non_negative = (("fit.ground_sigma_m", out.fit.ground_sigma_m),
                     ("fit.mirror_screen_ratio", out.fit.mirror_screen_ratio),
+                    ("fit.mirror_prescreen_ratio", out.fit.mirror_prescreen_ratio),
                     ("startup.start_radius_m", out.startup.start_radius_m))
     for name, value in non_negative:
         if value < 0:
             raise InputError(f"skeleton config: field '{name}' must be >= 0 (got {value!r})")
+    if out.fit.max_nfev < 1:
+        raise InputError(f"skeleton config: field 'fit.max_nfev' must be >= 1 (got {out.fit.max_nfev!r})")
     if not 1e-12 <= out.fit.tolerance < 1.0:
         raise InputError(f"skeleton config: field 'fit.tolerance' must be in [1e-12, 1) (got {out.fit.tolerance!r})")
     groups = out.fit.mirror_groups
@@ -642,6 +648,7 @@ def fit_pose(
     jacobian: str = "analytic",
     tolerance: float = 1e-8,
     free_dofs: np.ndarray | None = None,
+    evaluate_only: bool = False,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Bounded least-squares fit of theta to 3-D point targets (and, optionally, link motions).
 
@@ -662,7 +669,8 @@ def fit_pose(
     free_dofs: indices of the dofs to fit, the others held at theta0 (a conditional fit; the
     cost still counts every residual, so conditional costs of fits that share the held dofs
     compare). Returns (theta (n_dof,), cost, cov_theta (n_dof, n_dof) = (JᵀJ)⁺ at the solution,
-    robust weights included; zero rows and columns for held dofs).
+    robust weights included; zero rows and columns for held dofs). evaluate_only: no fit, the cost at
+    theta0 (as clipped into the limits; scipy's cost, the loss included) with a zero covariance.
     """
     lo, hi = body.lower, body.upper
     span = np.maximum(hi - lo, 1e-9)
@@ -757,6 +765,10 @@ def fit_pose(
         return jac(expand(x))[:, free]
 
     loss = ("cauchy", float(robust_scale)) if robust_scale > 0 else ("linear", 1.0)
+    if evaluate_only:
+        r2 = np.square(fit_fun(x0[free]))
+        c = robust_scale ** 2 * np.log1p(r2 / robust_scale ** 2) if robust_scale > 0 else r2
+        return x0, 0.5 * float(np.sum(c)), np.zeros((body.n_dof, body.n_dof))
     res = least_squares(fit_fun, x0[free], jac=fit_jac, bounds=(lo[free], hi[free]), method="trf",
                         max_nfev=max_nfev, x_scale=1.0, loss=loss[0], f_scale=loss[1], ftol=tolerance,
                         xtol=tolerance, gtol=tolerance)
@@ -1677,14 +1689,18 @@ class BaselineEstimator(_Estimator):
             # sagittal plane (left in the right's pose and back). Its cost bounds the full
             # mirrored fit's from above, so only a screen near the labelled cost earns the full fit.
             targets_m = self._blob_targets(mirrored) + axis
-            args = (self.kin.rest, self.rest_sigma_dof, self.theta, f.previous_sigma_rad, f.max_nfev,
-                    f.robust_scale, goals, self._ground)
+            prior = (self.kin.rest, self.rest_sigma_dof, self.theta, f.previous_sigma_rad)
+            rest = (f.robust_scale, goals, self._ground)
             theta_m, cost_m = _exchange_sides(self.body, theta, swapped), 0.0
             if free.size:  # (no dof of their own: straight to the full fit)
-                theta_m, cost_m, _ = fit_pose(self.body, theta_m, targets_m, *args, tolerance=f.tolerance,
-                                              free_dofs=free)
+                _, cost_m, _ = fit_pose(self.body, theta_m, targets_m, *prior, f.max_nfev, *rest, evaluate_only=True)
+                if cost_m >= f.mirror_prescreen_ratio * cost:
+                    continue  # hopeless from the start: no screen
+                theta_m, cost_m, _ = fit_pose(self.body, theta_m, targets_m, *prior, f.max_nfev, *rest,
+                                              tolerance=f.tolerance, free_dofs=free)
             if cost_m < f.mirror_screen_ratio * cost:
-                theta_m, cost_m, cov_m = fit_pose(self.body, theta_m, targets_m, *args, tolerance=f.tolerance)
+                theta_m, cost_m, cov_m = fit_pose(self.body, theta_m, targets_m, *prior, f.max_nfev, *rest,
+                                                  tolerance=f.tolerance)
                 if cost_m < cost:
                     theta, cost, cov = theta_m, cost_m, cov_m
         self._set_pose(theta, cov, self.poses, dt)
