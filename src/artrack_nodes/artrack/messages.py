@@ -207,8 +207,9 @@ def priors_from_msg(msg: Any) -> tuple[int, str, list[Prior2D]]:
 def body_msg(f: MsgFactory, est: BodyEstimate, frame_id: str = WORLD_FRAME, body_id: int = 0) -> Any:
     """artrack_msgs/TrackedBody from a BodyEstimate (world frame)."""
     links = []
-    for link in est.links:
-        q = Rotation.from_matrix(link.rotation).as_quat()  # x, y, z, w
+    # all links' quaternions (x, y, z, w) in one scipy call
+    quats = Rotation.from_matrix(np.array([lk.rotation for lk in est.links])).as_quat() if est.links else []
+    for link, q in zip(est.links, quats, strict=True):
         pose = f(
             "geometry_msgs/msg/Pose",
             position=_point(f, link.position),
@@ -241,13 +242,15 @@ def body_msg(f: MsgFactory, est: BodyEstimate, frame_id: str = WORLD_FRAME, body
 def body_from_msg(msg: Any) -> BodyEstimate:
     """BodyEstimate from an artrack_msgs/TrackedBody."""
     links = []
-    for ls in msg.links:
-        o = ls.pose.orientation
+    quats = [[ls.pose.orientation.x, ls.pose.orientation.y, ls.pose.orientation.z, ls.pose.orientation.w]
+             for ls in msg.links]
+    rotations = Rotation.from_quat(quats).as_matrix() if quats else []  # one scipy call
+    for ls, rotation in zip(msg.links, rotations, strict=True):
         links.append(
             LinkEstimate(
                 name=ls.name,
                 position=np.array(_xyz(ls.pose.position)),
-                rotation=Rotation.from_quat([o.x, o.y, o.z, o.w]).as_matrix(),
+                rotation=rotation,
                 velocity=np.array(_xyz(ls.velocity.linear)),
                 angular_velocity=np.array(_xyz(ls.velocity.angular)),
                 cov=np.array(ls.covariance, dtype=np.float64).reshape(6, 6),
@@ -315,9 +318,9 @@ def edge_stats_from_msg(msg: Any, link_names: list[str]) -> tuple[int, str, Any 
     if not (np.all(np.isfinite(info)) and np.all(np.isfinite(eta))):
         raise ValueError("field 'information' or 'information_vector' is not finite")
     ref = np.tile(np.eye(4), (n, 1, 1))
+    ref[:, :3, :3] = Rotation.from_quat([[p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
+                                         for p in msg.reference]).as_matrix()
     for i, pose in enumerate(msg.reference):
-        o = pose.orientation
-        ref[i, :3, :3] = Rotation.from_quat([o.x, o.y, o.z, o.w]).as_matrix()
         ref[i, :3, 3] = _xyz(pose.position)
     stats = LinkEdgeStatistics(ref, info.reshape(n, 6, 6), eta.reshape(n, 6),
                                np.array(msg.samples_found, dtype=np.int64), (msg.camera_name,))
