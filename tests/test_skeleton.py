@@ -628,18 +628,26 @@ def test_ground_contact_keeps_a_foot_on_the_floor(body):
     assert -0.01 < lowest["ground"] < 0.02, lowest
 
 
+def _noisy_blob_targets(body, rng, pose_sd: float, noise_sd: float):
+    """A random pose about the rest pose (pelvis at 0.95 m) and its blob centres as PointTargets,
+    each moved by N(0, noise_sd²) per axis, information 1 / (2 cm)²."""
+    truth = body.clip(body.rest_pose() + rng.normal(0.0, pose_sd, body.n_dof))
+    truth[2] = 0.95
+    means, _ = body.blob_gaussians(truth)
+    T = body.forward_kinematics(truth)
+    targets = [PointTarget(int(link), (np.linalg.inv(T[link]) @ np.append(means[k], 1.0))[:3],
+                           means[k] + rng.normal(0.0, noise_sd, 3), np.eye(3) / 0.02**2)
+               for k, link in enumerate(body.blob_links)]
+    return truth, targets
+
+
 def test_analytic_and_numeric_jacobians_give_the_same_fit(body):
     """fit_pose(jacobian='analytic') (default) and 'numeric' (forward differences) reach the same pose
     and cost with every residual kind on: blob targets with a Cauchy loss, link goals (edge statistics,
     whose log map is linearised to first order), the floor contact and both regularisers."""
     rng = np.random.default_rng(1)
-    truth = body.clip(body.rest_pose() + rng.normal(0.0, 0.3, body.n_dof))
-    truth[2] = 0.95
-    means, _ = body.blob_gaussians(truth)
+    truth, targets = _noisy_blob_targets(body, rng, 0.3, 0.01)
     T = body.forward_kinematics(truth)
-    targets = [PointTarget(int(link), (np.linalg.inv(T[link]) @ np.append(means[k], 1.0))[:3],
-                           means[k] + rng.normal(0.0, 0.01, 3), np.eye(3) / 0.02**2)
-               for k, link in enumerate(body.blob_links)]
     goal_links = np.array([body.link_names.index(n) for n in ("l_forearm", "l_hand", "r_forearm", "r_hand")])
     reference = np.array([T[i] @ exp_se3(rng.normal(0.0, 0.03, 6)) for i in goal_links])
     goals = LinkGoals(goal_links, inverse_se3(reference), rng.normal(0.0, 0.02, (4, 6)),
@@ -691,13 +699,7 @@ def test_fit_pose_evaluate_only_gives_the_cost_at_the_start(body):
     cost scipy reports there, robust loss and regularisers included: equal to a fit stopped after its
     first evaluation, and above the converged fit's cost."""
     rng = np.random.default_rng(5)
-    truth = body.clip(body.rest_pose() + rng.normal(0.0, 0.2, body.n_dof))
-    truth[2] = 0.95
-    means, _ = body.blob_gaussians(truth)
-    T = body.forward_kinematics(truth)
-    targets = [PointTarget(int(link), (np.linalg.inv(T[link]) @ np.append(means[k], 1.0))[:3],
-                           means[k] + rng.normal(0.0, 0.02, 3), np.eye(3) / 0.02**2)
-               for k, link in enumerate(body.blob_links)]
+    truth, targets = _noisy_blob_targets(body, rng, 0.2, 0.02)
     start = body.clip(truth + rng.normal(0.0, 0.1, body.n_dof))
     for scale in (3.0, 0.0):
         kw = dict(rest=body.rest_pose(), rest_sigma=0.5, previous=start, previous_sigma=0.3, robust_scale=scale)
