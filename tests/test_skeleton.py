@@ -568,6 +568,10 @@ def test_swapped_leg_labels_are_fitted_the_right_way_round(body, cameras):
         make_estimator("baseline", body, cameras, {"fit": {"mirror_prescreen_ratio": -1.0}})
     with pytest.raises(InputError, match="max_nfev"):
         make_estimator("baseline", body, cameras, {"fit": {"max_nfev": 0}})
+    with pytest.raises(InputError, match="mirror_screen_abandon_ratio"):
+        make_estimator("baseline", body, cameras, {"fit": {"mirror_screen_abandon_ratio": 1.0}})
+    with pytest.raises(InputError, match="mirror_screen_abandon_after"):
+        make_estimator("baseline", body, cameras, {"fit": {"mirror_screen_abandon_after": -1}})
     with pytest.raises(InputError, match="fit.overlap_parts"):
         make_estimator("baseline", body, cameras, {"fit": {"overlap_parts": ["tail"]}})
     with pytest.raises(InputError, match="fit.overlap_parts"):
@@ -710,6 +714,25 @@ def test_fit_pose_evaluate_only_gives_the_cost_at_the_start(body):
         _, cost_fit, _ = fit_pose(body, start, targets, max_nfev=100, **kw)
         assert cost_e == pytest.approx(cost_1, rel=1e-12), scale
         assert cost_fit < 0.5 * cost_e, (scale, cost_fit, cost_e)
+
+
+def test_fit_pose_abandons_a_fit_still_above_the_cost_given(body):
+    """fit_pose(abandon=(k, c)) (the leg screen's early exit) stops after iteration k when the cost
+    is still above c, returning that iteration's pose and cost (below the start's, above the
+    converged fit's); a fit below c by then runs on to the same result as without it."""
+    rng = np.random.default_rng(6)
+    truth, targets = _noisy_blob_targets(body, rng, 0.2, 0.02)
+    start = body.clip(truth + rng.normal(0.0, 0.15, body.n_dof))
+    kw = dict(rest=body.rest_pose(), rest_sigma=0.5, previous=start, previous_sigma=0.3, robust_scale=3.0,
+              max_nfev=100)
+    _, cost_start, _ = fit_pose(body, start, targets, evaluate_only=True, **kw)
+    theta_full, cost_full, _ = fit_pose(body, start, targets, **kw)
+    theta_a, cost_a, _ = fit_pose(body, start, targets, abandon=(2, 0.0), **kw)
+    assert cost_full < cost_a < cost_start, (cost_full, cost_a, cost_start)
+    assert not np.allclose(theta_a, theta_full)
+    theta_n, cost_n, _ = fit_pose(body, start, targets, abandon=(2, 10 * cost_start), **kw)
+    np.testing.assert_array_equal(theta_n, theta_full)
+    assert cost_n == cost_full
 
 
 def test_exchange_sides_mirrors_the_legs_across_the_sagittal_plane(body):

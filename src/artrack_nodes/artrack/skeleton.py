@@ -34,11 +34,15 @@ Kinds
     one group, the whole legs) and the fit of lowest (robust) cost wins. The exchanged fit is
     screened by the group's own dofs alone (``fit_pose(free_dofs=...)``, the rest held at the
     labelled fit) and fitted in full only when the screen comes within ``fit.mirror_screen_ratio``
-    of the labelled cost. Before that, per view (``measurement.view_association``, all
-    estimators): a pair labelled the wrong way round in some views but not others is put back
-    by the rays that meet (``triangulation.associate_views``); and before that (baseline), a pair
-    whose two 2-D blobs overlap in a view is left out of that view (``fit.overlap_parts``,
-    ``triangulation.drop_overlapping_pairs``): their pixels are shared out by the priors alone,
+    of the labelled cost; the screen itself is skipped when its start costs more than
+    ``fit.mirror_prescreen_ratio`` times the labelled fit, and abandoned when after
+    ``fit.mirror_screen_abandon_after`` iterations it is still above ``mirror_screen_abandon_ratio``
+    times (speed only: of the benches' 30 seeds, one run changed). Before that, per view
+    (``measurement.view_association``, all estimators): a pair labelled the wrong way round in some
+    views but not others is put back by the rays that meet (``triangulation.associate_views``); and
+    before that (baseline), a pair whose two 2-D blobs overlap in a view is left out of that view
+    (``fit.overlap_parts``, ``triangulation.drop_overlapping_pairs``): their pixels are shared out
+    by the priors alone,
     so the two blobs pull each other to the middle and the legs lose their motion as they pass.
 
 ``'kinematic'`` — the paper's cheap variant (§2.3, "15 % CPU"): one
@@ -270,6 +274,10 @@ class FitConfig:
     #: the screen itself runs only when the cost of its start (the labelled fit's legs exchanged, no
     #: fit) is below this times the labelled fit's cost (a large value: always)
     mirror_prescreen_ratio: float = 10.0
+    #: the screen is abandoned when after ``mirror_screen_abandon_after`` iterations its cost is
+    #: still above ``mirror_screen_abandon_ratio`` times the labelled fit's (0 iterations: never)
+    mirror_screen_abandon_after: int = 6
+    mirror_screen_abandon_ratio: float = 3.0
     #: l_/r_ parts left out of a view's triangulation where their two 2-D blobs overlap there
     #: (squared Mahalanobis distance between the means under the summed covariances below
     #: ``overlap_chi2``; :func:`artrack.triangulation.drop_overlapping_pairs`); [] = off
@@ -400,6 +408,13 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
             raise InputError(f"skeleton config: field '{name}' must be >= 0 (got {value!r})")
     if out.fit.max_nfev < 1:
         raise InputError(f"skeleton config: field 'fit.max_nfev' must be >= 1 (got {out.fit.max_nfev!r})")
+    if out.fit.mirror_screen_abandon_after < 0:
+        raise InputError("skeleton config: field 'fit.mirror_screen_abandon_after' must be >= 0 "
+                         f"(got {out.fit.mirror_screen_abandon_after!r})")
+    if out.fit.mirror_screen_abandon_ratio < out.fit.mirror_screen_ratio:
+        raise InputError("skeleton config: field 'fit.mirror_screen_abandon_ratio' must be >= "
+                         f"fit.mirror_screen_ratio (got {out.fit.mirror_screen_abandon_ratio!r}): it would "
+                         "abandon screens that pass")
     if not 1e-12 <= out.fit.tolerance < 1.0:
         raise InputError(f"skeleton config: field 'fit.tolerance' must be in [1e-12, 1) (got {out.fit.tolerance!r})")
     groups = out.fit.mirror_groups
@@ -649,6 +664,7 @@ def fit_pose(
     tolerance: float = 1e-8,
     free_dofs: np.ndarray | None = None,
     evaluate_only: bool = False,
+    abandon: tuple[int, float] | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Bounded least-squares fit of theta to 3-D point targets (and, optionally, link motions).
 
@@ -671,6 +687,8 @@ def fit_pose(
     compare). Returns (theta (n_dof,), cost, cov_theta (n_dof, n_dof) = (JᵀJ)⁺ at the solution,
     robust weights included; zero rows and columns for held dofs). evaluate_only: no fit, the cost at
     theta0 (as clipped into the limits; scipy's cost, the loss included) with a zero covariance.
+    abandon: (k, c): stop after iteration k if the cost is still above c (a screen that cannot
+    pass; the cost returned is then that iteration's, above c).
     """
     lo, hi = body.lower, body.upper
     span = np.maximum(hi - lo, 1e-9)
@@ -769,9 +787,18 @@ def fit_pose(
         r2 = np.square(fit_fun(x0[free]))
         c = robust_scale ** 2 * np.log1p(r2 / robust_scale ** 2) if robust_scale > 0 else r2
         return x0, 0.5 * float(np.sum(c)), np.zeros((body.n_dof, body.n_dof))
+    callback = None
+    if abandon is not None:
+        iterations = [0]
+
+        def callback(intermediate_result):
+            iterations[0] += 1
+            if iterations[0] == abandon[0] and intermediate_result.cost > abandon[1]:
+                raise StopIteration
+
     res = least_squares(fit_fun, x0[free], jac=fit_jac, bounds=(lo[free], hi[free]), method="trf",
                         max_nfev=max_nfev, x_scale=1.0, loss=loss[0], f_scale=loss[1], ftol=tolerance,
-                        xtol=tolerance, gtol=tolerance)
+                        xtol=tolerance, gtol=tolerance, callback=callback)
     J = res.jac
     cov = np.zeros((body.n_dof, body.n_dof))
     cov[np.ix_(free, free)] = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True)
@@ -1696,8 +1723,10 @@ class BaselineEstimator(_Estimator):
                 _, cost_m, _ = fit_pose(self.body, theta_m, targets_m, *prior, f.max_nfev, *rest, evaluate_only=True)
                 if cost_m >= f.mirror_prescreen_ratio * cost:
                     continue  # hopeless from the start: no screen
+                abandon = ((f.mirror_screen_abandon_after, f.mirror_screen_abandon_ratio * cost)
+                           if f.mirror_screen_abandon_after > 0 else None)
                 theta_m, cost_m, _ = fit_pose(self.body, theta_m, targets_m, *prior, f.max_nfev, *rest,
-                                              tolerance=f.tolerance, free_dofs=free)
+                                              tolerance=f.tolerance, free_dofs=free, abandon=abandon)
             if cost_m < f.mirror_screen_ratio * cost:
                 theta_m, cost_m, cov_m = fit_pose(self.body, theta_m, targets_m, *prior, f.max_nfev, *rest,
                                                   tolerance=f.tolerance)
