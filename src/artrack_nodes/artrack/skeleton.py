@@ -42,8 +42,8 @@ Kinds
     views but not others is put back by the rays that meet (``triangulation.associate_views``); and
     before that (baseline), a pair whose two 2-D blobs overlap in a view is left out of that view
     (``fit.overlap_parts``, ``triangulation.drop_overlapping_pairs``): their pixels are shared out
-    by the priors alone,
-    so the two blobs pull each other to the middle and the legs lose their motion as they pass.
+    by the priors alone, so the two blobs pull each other to the middle and the legs lose their
+    motion as they pass.
 
 ``'kinematic'`` — the paper's cheap variant (§2.3, "15 % CPU"): one
     constant-acceleration Kalman filter per blob (paper Eq. 7; ``kalman.py``)
