@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from artrack.blobs import FOREGROUND, SKIN, BlobTracker2D, BlobTrackerConfig, colour_features
+from artrack.blobs import FOREGROUND, SKIN, BlobTracker2D, BlobTrackerConfig, ColourModel, colour_features
 from artrack.config import load_dataclass_yaml
 from artrack.errors import InputError
 from artrack.types import BEHIND_CAMERA, OCCLUDED, Prior2D
@@ -565,3 +565,25 @@ def test_startup_waits_for_the_complete_seed_and_settling_by_default():
         assert tracker.step(img, None) == [], t
     img, _ = render(default_parts(cx=40.0 + 8.0 * n), n)
     assert tracker.step(img, None)[0].label == FOREGROUND
+
+
+def test_colour_model_whitening_is_cached_until_the_model_changes():
+    """ColourModel.whitening is computed once per model state: the cached result equals a fresh
+    computation, a new mean or covariance (reassigned or changed in place) or other floors give a
+    new one, and a caller changing the returned matrix does not change the cache."""
+    cfg = BlobTrackerConfig()
+    model = ColourModel(np.array([0.4, 0.3, 0.5]), np.diag([1e-3, 2e-3, 4e-3]), True)
+    A, log_det = model.whitening(cfg)
+    A_fresh, log_det_fresh = model._compute_whitening(cfg)
+    np.testing.assert_array_equal(A, A_fresh)
+    assert log_det == log_det_fresh
+    A[:] = 0.0  # the caller's copy
+    np.testing.assert_array_equal(model.whitening(cfg)[0], A_fresh)
+    model.mean = np.array([0.35, 0.3, 0.5])
+    assert not np.array_equal(model.whitening(cfg)[0], A_fresh)
+    np.testing.assert_array_equal(model.whitening(cfg)[0], model._compute_whitening(cfg)[0])
+    model.cov[0, 0] = 5e-3  # in place
+    np.testing.assert_array_equal(model.whitening(cfg)[0], model._compute_whitening(cfg)[0])
+    rg = dataclasses.replace(cfg, colour_features="rg")
+    assert model.whitening(rg)[1] != model.whitening(cfg)[1]
+    np.testing.assert_array_equal(model.whitening(rg)[0], model._compute_whitening(rg)[0])

@@ -358,11 +358,24 @@ class ColourModel:
     cov: np.ndarray
     learned: bool = False
     min_intensity: float = 0.0
+    #: the last whitening computed and what it was computed from (mean, cov, floors, features)
+    _whitening: tuple | None = field(default=None, repr=False, compare=False)
 
     def whitening(self, config: BlobTrackerConfig) -> tuple[np.ndarray, float]:
         """(A (3, 4) float32, log|Σ|): ``A @ [c; 1]`` is the whitened residual, so that
         |A [c; 1]|² is the squared Mahalanobis distance of colour c (variance floors added;
-        the intensity row is zero in 'rg' mode, where log|Σ| is that of the chroma marginal)."""
+        the intensity row is zero in 'rg' mode, where log|Σ| is that of the chroma marginal).
+        Cached until the model's mean or covariance (or those settings) change."""
+        key = (np.asarray(self.mean, float).tobytes(), np.asarray(self.cov, float).tobytes(),
+               config.colour_min_sigma_chroma, config.colour_min_sigma_intensity, config.colour_features)
+        if self._whitening is not None and self._whitening[0] == key:
+            A, log_det = self._whitening[1]
+            return A.copy(), log_det
+        result = self._compute_whitening(config)
+        self._whitening = (key, (result[0].copy(), result[1]))
+        return result
+
+    def _compute_whitening(self, config: BlobTrackerConfig) -> tuple[np.ndarray, float]:
         floor = np.array([config.colour_min_sigma_chroma] * 2 + [config.colour_min_sigma_intensity]) ** 2
         cov = np.asarray(self.cov, float) + np.diag(floor)
         n = 2 if config.colour_features == "rg" else 3
