@@ -90,7 +90,9 @@ def scene_bag(name: str, n_cameras: int, args, body) -> Path:
     """The cached bag of scene ``name`` (synthesised on first use)."""
     cfg = SceneConfig(n_cameras=n_cameras, width=args.width, height=args.height, duration_s=args.duration,
                       seed=args.seed, **SCENES[name])
-    path = Path(args.cache) / f"{name}_c{n_cameras}_s{args.seed}_{args.width}x{args.height}_{args.duration:g}s.mcap"
+    # (fewer than 4 cameras: the corners of the 4-camera ring since stop 27, "corners" in the name)
+    rig = f"c{n_cameras}" + ("corners" if n_cameras < 4 else "")
+    path = Path(args.cache) / f"{name}_{rig}_s{args.seed}_{args.width}x{args.height}_{args.duration:g}s.mcap"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         frames = Progress(generate_scene(cfg, body), total=cfg.n_frames, label=f"synth {path.name}")

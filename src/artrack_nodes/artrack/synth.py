@@ -57,8 +57,10 @@ def default_rig(n_cameras: int = 4, width: int = 640, height: int = 480, radius:
                 target=(0.0, 0.3, 0.9)) -> list[Camera]:
     """A ring of ``n_cameras`` cameras (cam01..camNN) ``radius`` m from the z axis, looking at ``target``.
 
-    Azimuths 45° + k·360°/n (for n = 4: the room's diagonals, cam01 front-left of
-    a body facing +x, cam02 back-left, cam03 back-right, cam04 front-right);
+    Azimuths 45° + k·360°/max(n, 4) (for n = 4: the room's diagonals, cam01 front-left of
+    a body facing +x, cam02 back-left, cam03 back-right, cam04 front-right; fewer cameras take
+    the first corners of that ring, so two cameras stand 90° apart rather than facing each
+    other along one line, where their rays meet at grazing angles);
     heights alternate 1.9 / 1.6 m; focal 500 px at 640 px width (scaled with
     width), principal point near the centre, distortion k1 ≈ -0.05, k2 ≈ 0.01.
     Deterministic.
@@ -66,7 +68,7 @@ def default_rig(n_cameras: int = 4, width: int = 640, height: int = 480, radius:
     cams = []
     f = 500.0 * width / 640.0
     for k in range(n_cameras):
-        az = np.deg2rad(45.0 + 360.0 * k / n_cameras)
+        az = np.deg2rad(45.0 + 360.0 * k / max(n_cameras, 4))
         eye = np.array([radius * np.cos(az), radius * np.sin(az), 1.9 if k % 2 == 0 else 1.6])
         K = np.array([[f * (1.0 + 0.004 * ((k % 3) - 1)), 0.0, (width - 1) / 2.0 + 2.0 * ((k % 2) * 2 - 1)],
                       [0.0, f * (1.0 + 0.004 * ((k % 3) - 1)), (height - 1) / 2.0 - 1.5 * ((k % 2) * 2 - 1)],
