@@ -394,7 +394,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("synth", help="render a synthetic multi-camera scene with ground truth into a bag")
     s.add_argument("--out", required=True, help="output bag (rosbag2 .mcap)")
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--cameras", type=int, default=4, help="number of cameras (default 4)")
+    s.add_argument("--cameras", type=int, default=4,
+                   help="number of cameras (default 4) on a ring at the room's corners, 90° apart when fewer than 4")
     s.add_argument("--width", type=int, default=640)
     s.add_argument("--height", type=int, default=480)
     s.add_argument("--fps", type=float, default=30.0)
