@@ -297,7 +297,7 @@ class KinematicConfig:
     writeback_sigma_m: float = 0.01
     alpha: float = 1.0
     link_goal_weight: float = 0.02
-    rest_weight: float = 1.0
+    rest_weight: float = 4.0
     previous_sigma_rad: float = 0.3
     limit_sigma_rad: float = 0.02
     gravity_weight: float = 2.0
