@@ -36,7 +36,7 @@ Kinds
     labelled fit) and fitted in full only when the screen comes within ``fit.mirror_screen_ratio``
     of the labelled cost; the screen itself is skipped when its start costs more than
     ``fit.mirror_prescreen_ratio`` times the labelled fit, and abandoned when after
-    ``fit.mirror_screen_abandon_after`` iterations it is still above ``mirror_screen_abandon_ratio``
+    ``fit.mirror_screen_abandon_after`` iterations it is still above ``fit.mirror_screen_abandon_ratio``
     times (speed only: of the benches' 30 seeds, one run changed). Before that, per view
     (``measurement.view_association``, all estimators): a pair labelled the wrong way round in some
     views but not others is put back by the rays that meet (``triangulation.associate_views``); and
