@@ -139,6 +139,24 @@ def test_default_rig():
     assert [c.name for c in default_rig(12, 160, 120)][-1] == "cam12"
 
 
+def test_fewer_than_four_cameras_stand_at_the_first_corners_of_the_ring():
+    """Two or three cameras are the first corners of the 4-camera rig (the same poses), so two
+    cameras look at the person 90° apart instead of facing each other along one line (where a
+    point's two rays meet at grazing angles); more than four spread evenly round the ring."""
+    four = default_rig(4, 320, 240)
+    for n in (1, 2, 3):
+        for c, c4 in zip(default_rig(n, 320, 240), four[:n], strict=True):
+            np.testing.assert_allclose(c.center, c4.center, atol=1e-12)
+            np.testing.assert_allclose(c.R, c4.R, atol=1e-12)
+    a, b = (np.arctan2(c.center[1], c.center[0]) for c in default_rig(2, 320, 240))
+    assert np.degrees(abs(b - a)) == pytest.approx(90.0, abs=1e-6)
+    axes = [c.R[2] for c in default_rig(2, 320, 240)]  # optical axes
+    assert abs(float(axes[0] @ axes[1])) < 0.2, "not facing each other"
+    six = default_rig(6, 320, 240)
+    gaps = np.diff(np.unwrap([np.arctan2(c.center[1], c.center[0]) for c in six]))
+    np.testing.assert_allclose(np.degrees(gaps), 60.0, atol=1e-6)
+
+
 def test_render_person_in_every_view(body, small_rig, label_renderer):
     theta = motion.pose_at("default", 0.0, body)
     imgs, labels = label_renderer.render(theta, noise_sigma=0.0, labels=True)
