@@ -598,6 +598,15 @@ class _ClassModel:
     colour: ColourModel
     log_confidence: float = 0.0  # log of the prior's (floored) confidence; 0 for temporal priors
     rect: tuple[int, int, int, int] = (0, 0, 0, 0)  # x0, y0, x1, y1 (exclusive)
+    det: float = 1.0  # det(cov), > 0
+    precision: np.ndarray | None = None  # cov⁻¹ (2, 2)
+
+
+def _scale_gaussian(mean: np.ndarray, cov: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A 2-D Gaussian in pixels (pixel centres at integers) rescaled by s (2,) per axis:
+    ``D (mean + ½) − ½`` and ``D cov D`` with D = diag(s), elementwise."""
+    m = s * (np.asarray(mean, float).reshape(2) + 0.5) - 0.5
+    return m, (s[:, None] * np.asarray(cov, float).reshape(2, 2)) * s[None, :]
 
 
 def _rect(mean: np.ndarray, cov: np.ndarray, k: float, width: int, height: int) -> tuple[int, int, int, int]:
@@ -702,13 +711,11 @@ class BlobTracker2D:
 
     def _to_work(self, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         sx, sy = self._scale()
-        D = np.diag([sx, sy])
-        return D @ (np.asarray(mean, float) + 0.5) - 0.5, D @ np.asarray(cov, float) @ D
+        return _scale_gaussian(mean, cov, np.array([sx, sy]))
 
     def _from_work(self, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         sx, sy = self._scale()
-        D = np.diag([1.0 / sx, 1.0 / sy])
-        return D @ (np.asarray(mean, float) + 0.5) - 0.5, D @ np.asarray(cov, float) @ D
+        return _scale_gaussian(mean, cov, np.array([1.0 / sx, 1.0 / sy]))
 
     def _min_pixels(self) -> int:
         """min_blob_pixels in working-resolution pixels (scaled with the image width, see config)."""
@@ -820,12 +827,19 @@ class BlobTracker2D:
                 cov = cfg.temporal_inflation * tr.cov + motion + floor
                 weight = cfg.temporal_weight
                 log_conf = 0.0
-            if np.linalg.det(cov) <= 0:
-                continue
             m = _ClassModel(i, mean, cov, weight, colour, log_conf)
             m.rect = _rect(mean, cov, cfg.roi_sigma, W, H)
             if m.rect[2] > m.rect[0] and m.rect[3] > m.rect[1]:
                 models.append(m)
+        if not models:
+            return models
+        # the classes' 2x2 determinants and inverses in one call each (per-matrix the same LAPACK routine)
+        dets = np.linalg.det(np.array([m.cov for m in models]))
+        models = [m for m, d in zip(models, dets, strict=True) if d > 0]
+        if models:
+            precisions = np.linalg.inv(np.array([m.cov for m in models]))
+            for m, d, P in zip(models, dets[dets > 0], precisions, strict=True):
+                m.det, m.precision = float(d), P
         return models
 
     # ------------------------------------------------------------------ tracking
@@ -860,7 +874,7 @@ class BlobTracker2D:
             for m in models:
                 inside = (xs >= m.rect[0]) & (xs < m.rect[2]) & (ys >= m.rect[1]) & (ys < m.rect[3])
                 sel = np.flatnonzero(inside)
-                P = np.linalg.inv(m.cov).astype(_F32)
+                P = m.precision.astype(_F32)
                 du, dv = u[sel] - _F32(m.mean[0]), v[sel] - _F32(m.mean[1])
                 ds2 = P[0, 0] * du * du + 2 * P[0, 1] * du * dv + P[1, 1] * dv * dv
                 gated = ds2 <= gs2  # the spatial gate: the ellipse inside the ROI rectangle
@@ -880,7 +894,7 @@ class BlobTracker2D:
                 ok = dc2 <= gc2
                 if m.colour.min_intensity > 0:
                     ok &= f[:, 2] >= m.colour.min_intensity
-                log_prior = m.log_confidence - 0.5 * math.log(np.linalg.det(m.cov))
+                log_prior = m.log_confidence - 0.5 * math.log(m.det)
                 const = m.weight * log_prior - 0.5 * logdet_c
                 score = _F32(const) - 0.5 * (dc2 + _F32(m.weight) * ds2)
                 better = ok & (score > best[sel])

@@ -273,30 +273,26 @@ class BodyModel:
         n = flat.shape[0]
         n_links = len(self.links)
         rv_cols, rv_links, hinge_cols, hinge_links, _, _ = self._dof_kinds
-        # Local rotations parent_from_link: all rotation vectors (ball joints and the root) in one
-        # scipy call, all hinges by Rodrigues' formula at once.
-        local = np.empty((n, n_links, 3, 3))
+        # Link-major (L, n, 4, 4), first parent_from_link: the fixed offsets, all rotation vectors
+        # (ball joints and the root) in one scipy call, all hinges by Rodrigues' formula at once.
+        T = np.empty((n_links, n, 4, 4))
+        T[:, :, 3, :3] = 0.0
+        T[:, :, 3, 3] = 1.0
+        T[:, :, :3, 3] = self._offsets[:, None, :]
         if len(rv_links):
             mats = Rotation.from_rotvec(flat[:, rv_cols].reshape(-1, 3)).as_matrix()
-            local[:, rv_links] = mats.reshape(n, len(rv_links), 3, 3)
+            T[rv_links, :, :3, :3] = mats.reshape(n, len(rv_links), 3, 3).swapaxes(0, 1)
         if len(hinge_links):
             k, kk = self._hinge_k
-            ang = flat[:, hinge_cols][..., None, None]
-            local[:, hinge_links] = np.eye(3) + np.sin(ang) * k + (1.0 - np.cos(ang)) * kk
-        rot = np.empty((n, n_links, 3, 3))
-        pos = np.empty((n, n_links, 3))
+            ang = flat[:, hinge_cols].T[..., None, None]  # (hinges, n, 1, 1)
+            T[hinge_links, :, :3, :3] = np.eye(3) + np.sin(ang) * k[:, None] + (1.0 - np.cos(ang)) * kk[:, None]
         roots, root_cols = self._fk_roots
-        rot[:, roots] = local[:, roots]
-        pos[:, roots] = flat[:, root_cols]
-        # The tree level by level (all links of one depth at once).
+        T[roots, :, :3, 3] = flat[:, root_cols].swapaxes(0, 1)
+        # The tree level by level (all links of one depth at once): world_from_link =
+        # world_from_parent @ parent_from_link, in place (a level's parents are all done).
         for idx, par in self._fk_levels:
-            rot[:, idx] = rot[:, par] @ local[:, idx]
-            pos[:, idx] = pos[:, par] + (rot[:, par] @ self._offsets[idx][..., None])[..., 0]
-        out = np.zeros((n, n_links, 4, 4))
-        out[..., :3, :3] = rot
-        out[..., :3, 3] = pos
-        out[..., 3, 3] = 1.0
-        return out.reshape(*batch, n_links, 4, 4)
+            T[idx] = T[par] @ T[idx]
+        return T.swapaxes(0, 1).reshape(*batch, n_links, 4, 4)
 
     def dof_twists(self, theta: np.ndarray, world_from_link: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
