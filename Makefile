@@ -32,8 +32,8 @@ test: setup data
 # over DDS in lockstep, record the output bag, then print frames per second and the
 # checks without ground truth (bench/real_video.py: IoU with an independent foreground,
 # joints inside it, leave-one-camera-out, joint speeds) and write the overlay montage and
-# video to out/demo/. Tunables for this recording: config/pose2sim_demo.yaml (blob tracker) and
-# config/pose2sim_skeleton.yaml (estimator).
+# video to out/demo/. Tunables for this recording: config/pose2sim_demo.yaml (blob tracker),
+# config/pose2sim_skeleton.yaml (estimator) and config/pose2sim_body_model.yaml (body model).
 demo: setup data
 	@mkdir -p $(REAL_OUT) bags
 	@$(ENV) [ -e $(REAL_BAG) ] || artrack bag-from-videos --videos $(REAL_DEMO)/videos/cam0{1,2,3,4}.mp4 \
@@ -41,7 +41,8 @@ demo: setup data
 	@rm -rf $(REAL_OUT)/graph $(REAL_OUT)/logs
 	@$(ENV) artrack launch config/graph.yaml --set bag=$(REAL_BAG) --set out=$(REAL_OUT)/graph --set fps=60.0 \
 		--set blob_config=$(CURDIR)/config/pose2sim_demo.yaml \
-		--set skeleton_config=$(CURDIR)/config/pose2sim_skeleton.yaml --log-dir $(REAL_OUT)/logs
+		--set skeleton_config=$(CURDIR)/config/pose2sim_skeleton.yaml \
+		--set body_model=$(CURDIR)/config/pose2sim_body_model.yaml --log-dir $(REAL_OUT)/logs
 	@grep -ho "done: .*frames per second.*" $(REAL_OUT)/logs/bag_player.log | sed 's/^done: /graph: /'
 	@$(ENV) python bench/real_video.py --bag $(REAL_BAG) --pred $(REAL_OUT)/graph --quiet \
 		--overlay-png $(REAL_OUT)/overlay.png --overlay-mp4 $(REAL_OUT)/overlay.mp4

@@ -196,7 +196,8 @@ def main() -> int:
     ap.add_argument("--blob-config", default=str(REPO / "config" / "pose2sim_demo.yaml"))
     ap.add_argument("--skeleton-config", default=str(REPO / "config" / "pose2sim_skeleton.yaml"),
                     help="estimator tunables YAML (default: the Pose2Sim recordings' config/pose2sim_skeleton.yaml)")
-    ap.add_argument("--body-model", default=None, help="body model YAML (default config/body_model.yaml)")
+    ap.add_argument("--body-model", default=str(REPO / "config" / "pose2sim_body_model.yaml"),
+                    help="body model YAML (default: the Pose2Sim recordings' config/pose2sim_body_model.yaml)")
     ap.add_argument("--pred", type=Path, default=None, help="check this tracking output instead (bag or track folder)")
     ap.add_argument("--no-loo", action="store_true", help="skip the leave-one-camera-out runs")
     ap.add_argument("--dilate-px", type=int, default=6, help="dilation of the reference mask for 'inside', px")

@@ -211,6 +211,45 @@ def test_error_names_file(tmp_path, raw):
         load_body_model(tmp_path / "missing.yaml")
 
 
+def test_extends_with_link_overrides(body, tmp_path):
+    """A variant file takes the base body and changes only what it names: the Pose2Sim body
+    adds skin blobs on the upper arms, everything else (links, limits, shapes, joints) equal."""
+    variant = load_body_model(CONFIG.parent / "pose2sim_body_model.yaml")
+    assert variant.link_names == body.link_names and variant.joint_names == body.joint_names
+    assert np.array_equal(variant.lower, body.lower) and np.array_equal(variant.upper, body.upper)
+    assert variant.blob_labels == ["pelvis", "torso", "head", "l_upper_arm", "l_hand", "r_upper_arm", "r_hand",
+                                   "l_thigh", "l_shin", "r_thigh", "r_shin"]
+    for side in "lr":
+        blob = variant.link(f"{side}_upper_arm").blob
+        assert blob.colour == "skin"
+        np.testing.assert_allclose(blob.centre, [0.0, 0.0, -0.145])
+        assert body.link(f"{side}_upper_arm").blob is None
+    for name in ("torso", "l_hand", "r_thigh"):
+        np.testing.assert_array_equal(variant.link(name).blob.centre, body.link(name).blob.centre)
+    theta = body.rest_pose() + 0.1
+    np.testing.assert_array_equal(variant.forward_kinematics(theta), body.forward_kinematics(theta))
+
+    # a top-level field replaces the base's; the base is found next to the variant
+    (tmp_path / "base.yaml").write_text(CONFIG.read_text())
+    (tmp_path / "renamed.yaml").write_text("extends: base.yaml\nname: renamed\n")
+    assert load_body_model(tmp_path / "renamed.yaml").name == "renamed"
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("extends: base.yaml\nlink_overrides: {l_arm: {colour: skin}}\n", r"v\.yaml: link_overrides: unknown link 'l_arm'"),
+    ("extends: base.yaml\nlink_overrides: {l_hand: {parent: torso}}\n", r"v\.yaml: link_overrides\.l_hand: must be"),
+    ("extends: nowhere.yaml\n", r"nowhere\.yaml: cannot read"),
+    ("extends: v.yaml\n", r"v\.yaml: 'extends' loops back"),
+    ("link_overrides: {l_hand: {colour: skin}}\n", r"v\.yaml: field 'link_overrides' needs 'extends'"),
+    ("extends: base.yaml\nlink_overrides: {l_hand: {blob: {colour: paint}}}\n", r"v\.yaml: .*l_hand"),
+])
+def test_extends_errors_name_the_file(tmp_path, text, expected):
+    (tmp_path / "base.yaml").write_text(CONFIG.read_text())
+    (tmp_path / "v.yaml").write_text(text)
+    with pytest.raises(BodyModelError, match=expected):
+        load_body_model(tmp_path / "v.yaml")
+
+
 def test_point_and_link_twist_jacobians_match_finite_differences(body):
     """BodyModel.point_jacobian / link_twist_jacobian (the analytic Jacobian of the body fit) against
     forward differences of the forward kinematics at a random pose within the limits."""

@@ -435,15 +435,50 @@ def load_body_model(path: str | os.PathLike | None = None) -> BodyModel:
     inconsistency.
     """
     path = default_config_path() if path is None else Path(path)
+    return body_model_from_dict(_read_model_yaml(Path(path), ()), source=str(path))
+
+
+def _read_model_yaml(path: Path, chain: tuple[str, ...]) -> Any:
+    """The parsed YAML of a body model file, with ``extends`` resolved (schema at the top of
+    config/body_model.yaml): the base file's mapping (path relative to this file's folder),
+    this file's other top-level fields replacing the base's, then ``link_overrides``
+    ({link name: {field: value}}) replacing fields of the named links."""
     try:
-        text = Path(path).read_text()
+        text = path.read_text()
     except OSError as exc:
         raise BodyModelError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise BodyModelError(f"{path}: not valid YAML ({exc})") from exc
-    return body_model_from_dict(data, source=str(path))
+    if not isinstance(data, dict) or "extends" not in data:
+        if isinstance(data, dict) and "link_overrides" in data:
+            raise BodyModelError(f"{path}: field 'link_overrides' needs 'extends' (the body model it changes)")
+        return data
+    base_name = data["extends"]
+    if not isinstance(base_name, str) or not base_name:
+        raise BodyModelError(f"{path}: field 'extends' must be a file name, got {base_name!r}")
+    base_path = (path.parent / base_name).resolve()
+    if str(base_path) in chain:
+        raise BodyModelError(f"{path}: 'extends' loops back to {base_path}")
+    base = _read_model_yaml(base_path, (*chain, str(path.resolve())))
+    if not isinstance(base, dict):
+        raise BodyModelError(f"{base_path} (extended by {path}): top level must be a mapping")
+    merged = {**base, **{k: v for k, v in data.items() if k not in ("extends", "link_overrides")}}
+    overrides = data.get("link_overrides") or {}
+    if not isinstance(overrides, dict):
+        raise BodyModelError(f"{path}: field 'link_overrides' must map link names to fields")
+    links = [dict(lk) if isinstance(lk, dict) else lk for lk in merged.get("links") or []]
+    by_name = {lk.get("name"): lk for lk in links if isinstance(lk, dict)}
+    for name, fields in overrides.items():
+        if name not in by_name:
+            raise BodyModelError(f"{path}: link_overrides: unknown link '{name}' (not in {base_path.name})")
+        if not isinstance(fields, dict) or "name" in fields or "parent" in fields:
+            raise BodyModelError(f"{path}: link_overrides.{name}: must be a mapping of link fields "
+                                 "(not 'name' or 'parent')")
+        by_name[name].update(fields)
+    merged["links"] = links
+    return merged
 
 
 def body_model_from_dict(data: Any, source: str = "<dict>") -> BodyModel:
