@@ -678,7 +678,8 @@ def fit_pose(
     = gtol (``fit.tolerance``; most frames stop on it, the others at max_nfev). rest_sigma: scalar or
     per-dof (n_dof,) rad. robust_scale > 0: Cauchy loss
     on the whitened residuals with this scale (sigmas), so that a grossly wrong target (a
-    mislabelled blob) pulls little; 0: plain least squares. link_goals: soft constraints on
+    mislabelled blob) pulls little; it applies to every residual, the regularisers' too (scipy's
+    ``loss``); 0: plain least squares. link_goals: soft constraints on
     link poses, ``½ Σ_i ‖S_i (log(E_ref,i⁻¹ E_i(θ)) − ξ̂_i)‖²`` (the edge statistics of
     ALGORITHMS.md §2 as information ``S_iᵀ S_i`` on each link's motion, in the link frame).
     ground: soft floor contact (:class:`GroundContact`), whitened residuals like the others.
