@@ -61,6 +61,13 @@ Kinds
     the baseline); a blob far from that fit gets its R inflated by a Cauchy weight
     (``kinematic.outlier_fit_scale``), since each filter alone judges its blob only
     against its own prediction and would follow a consistently mislabelled blob.
+    That fit is also the links' orientation measurement (``kinematic.orientation_from_fit``):
+    the blob filters measure positions only, and a torso whose blobs sit on its axis
+    (pelvis, torso, head) leaves its heading to the springs; the solver's orientation
+    springs then pull each link to the fit's rotation instead of its extrapolated
+    previous one, and the fit follows its own track from frame to frame (started from
+    its last result, not from the solver's pose), so that a heading the solver lets
+    drift does not carry the measurement with it.
     ``predict`` runs the filters forward and solves the constraints for the
     predicted goals; its blobs carry the prediction covariance from ``P_prior``.
 
@@ -308,6 +315,7 @@ class KinematicConfig:
     angular_velocity_smoothing: float = 0.5
     robust_scale: float = 3.0
     outlier_fit_scale: float = 1.5
+    orientation_from_fit: bool = True
 
 
 @dataclass
@@ -1807,6 +1815,7 @@ class KinematicEstimator(_Estimator):
         self.link_cov = np.tile(np.eye(6) * k.init_position_sigma_m**2, (self.kin.n_links, 1, 1))
         self.iterations = 0
         self.n_accepted = len(obs)
+        self._fit_theta = None  # the outlier fit's own track (orientation_from_fit)
 
     # -- goals -------------------------------------------------------------------
     def _soft_terms(self, blob_x, blob_P, link_x, link_P, R_pred):
@@ -1887,7 +1896,7 @@ class KinematicEstimator(_Estimator):
         Rm = np.tile(np.eye(3), (B, 1, 1))
         mask = np.zeros(B, bool)
         t0 = time.perf_counter()
-        _, fit_d2 = self._outlier_fit(obs, k.outlier_fit_scale)
+        theta_fit, fit_d2 = self._outlier_fit(obs, k.outlier_fit_scale)
         t1 = time.perf_counter()
         for lab, blob in obs.items():
             b = self.kin.blob_index[lab]
@@ -1915,6 +1924,9 @@ class KinematicEstimator(_Estimator):
         self.n_accepted = int(mask.sum())
         t2 = time.perf_counter()
         R_pred = exp_so3(self.omega * dt) @ self.R
+        # the links' orientation springs: toward the frame's robust body fit when it ran, else the
+        # constant-angular-velocity prediction
+        R_goal = self.kin.poses(theta_fit)[1] if (k.orientation_from_fit and theta_fit is not None) else R_pred
         theta, res, terms = self._solve(
             self.p,
             self.R,
@@ -1922,7 +1934,7 @@ class KinematicEstimator(_Estimator):
             self.blob_kf.position_cov(),
             self.link_kf.x_prior[:, :3],
             self.link_kf.position_cov(prior=True),
-            R_pred,
+            R_goal,
             k.max_iterations,
         )
         self.iterations = res.iterations
@@ -1944,26 +1956,34 @@ class KinematicEstimator(_Estimator):
         """Outlier classification against one consistent body (ALGORITHMS.md §1, measurement
         step): the body model fitted robustly (Cauchy loss ``fit.robust_scale``, as the baseline)
         to this frame's 3-D blobs, started from the last pose moved by the root filter's
-        prediction. Returns (theta_fit or None, {label: whitened squared residual of the blob
+        prediction (``kinematic.orientation_from_fit``: from the fit's own last result, held
+        near it). Returns (theta_fit or None, {label: whitened squared residual of the blob
         to that fit})."""
         f = self.cfg.fit
+        own_track = self.kind == "kinematic" and self.cfg.kinematic.orientation_from_fit
         if scale <= 0 or len(obs) < self.cfg.tracking.min_blobs:
+            if own_track:
+                self._fit_theta = None  # the next fit starts again from the solver's pose
             return None, {}
-        theta0 = self.theta.copy()
+        theta0, previous = self.theta.copy(), self.theta
         if self.kind == "kinematic":
             theta0[0:3] = self.link_kf.x_prior[0, :3]
+        if own_track and self._fit_theta is not None:
+            theta0 = previous = self._fit_theta
         theta, _, _ = fit_pose(
             self.body,
             theta0,
             self._blob_targets(obs),
             self.kin.rest,
             self.rest_sigma_dof,
-            self.theta,
+            previous,
             f.previous_sigma_rad,
             f.max_nfev,
             f.robust_scale,
             tolerance=f.tolerance,
         )
+        if own_track:
+            self._fit_theta = theta
         centres = self.body.blob_centres(theta)
         d2 = {}
         for lab, blob in obs.items():
