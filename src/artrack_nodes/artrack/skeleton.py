@@ -1818,7 +1818,7 @@ class KinematicEstimator(_Estimator):
         self._fit_theta = None  # the outlier fit's own track (orientation_from_fit)
 
     # -- goals -------------------------------------------------------------------
-    def _soft_terms(self, blob_x, blob_P, link_x, link_P, R_pred):
+    def _soft_terms(self, blob_x, blob_P, link_x, link_P, R_goal):
         """Static soft terms and the callable adding the pose-dependent priors."""
         k = self.cfg.kinematic
         terms: list = []
@@ -1831,7 +1831,7 @@ class KinematicEstimator(_Estimator):
                 terms.append(PointGoal(int(i), np.zeros(3), link_x[i], S))
         if k.previous_sigma_rad > 0:
             for i in range(self.kin.n_links):
-                terms.append(OrientationGoal(i, R_pred[i], 1.0 / k.previous_sigma_rad**2))
+                terms.append(OrientationGoal(i, R_goal[i], 1.0 / k.previous_sigma_rad**2))
         if k.gravity_weight > 0:
             for i in self.gravity_links:
                 f = np.array([0.0, 0.0, -k.gravity_weight * self.kin.masses[i]])
@@ -1858,8 +1858,8 @@ class KinematicEstimator(_Estimator):
 
         return terms, all_terms
 
-    def _solve(self, p0, R0, blob_x, blob_P, link_x, link_P, R_pred, iterations):
-        _, terms = self._soft_terms(blob_x, blob_P, link_x, link_P, R_pred)
+    def _solve(self, p0, R0, blob_x, blob_P, link_x, link_P, R_goal, iterations):
+        _, terms = self._soft_terms(blob_x, blob_P, link_x, link_P, R_goal)
         res = self.solver.solve_kinematic(p0, R0, terms, max_iterations=iterations, step_tol=1e-4)
         theta = self.body.clip(self.kin.theta_from_poses(res.p, res.R))
         return theta, res, terms
