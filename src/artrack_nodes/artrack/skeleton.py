@@ -305,7 +305,7 @@ class KinematicConfig:
     alpha: float = 1.0
     link_goal_weight: float = 0.02
     rest_weight: float = 4.0
-    previous_sigma_rad: float = 0.3
+    previous_sigma_rad: float = 0.08
     limit_sigma_rad: float = 0.02
     gravity_weight: float = 2.0
     coast_velocity_decay: float = 0.8
