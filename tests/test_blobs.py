@@ -182,6 +182,49 @@ def test_ghost_of_a_person_absorbed_by_the_seed_heals_quickly():
     assert np.linalg.norm(blobs["head"].mean - np.array(there["head"][1])) < 1.0
 
 
+@pytest.mark.parametrize("max_sigma", [0.0, 8.0])
+def test_hand_where_the_seed_varied_is_foreground_once_tracking_caps_the_sigma(max_sigma):
+    """Where the seed samples varied widely (the parts of a person passing a pixel), the seed's
+    MAD is tens of grey levels and a skin-coloured hand there is within 5 sigmas of the room:
+    not foreground. From the first tracked frame the sigma is capped at
+    ``background_max_sigma`` (8) and the hand is foreground again; without the cap (0) it stays
+    hidden. Start-up frames leave the seed's sigma alone (blobs.py module docstring, "Background")."""
+    tracker = make_tracker(background_max_sigma=max_sigma)
+    parts = default_parts()
+    hx, hy = (int(round(v)) for v in parts["l_hand"][1])
+    patch = (slice(hy - 12, hy + 13), slice(hx - 12, hx + 13))
+    for t in range(SEED):  # the patch's grey level spreads over 60..210: MAD 50, sigma ~74
+        img = BG.copy()
+        img[patch] = 60 + 25 * t
+        tracker.step(img, None)
+    assert tracker.background.ready
+    img, masks = render({}, 50)
+    tracker.step(img, None)  # a start-up frame (no person, no priors): the seed's sigma is kept
+    assert not tracker.background.capped
+    assert float(np.sqrt(tracker.background.var[patch].max())) > 40.0
+    for t in range(2):  # the first tracked frame applies the cap; the second is classified under it
+        img, masks = render(parts, 60 + t)
+        blobs = by_label(tracker.step(img, priors_for(parts)))
+    hand = masks["l_hand"]
+    seen = tracker.foreground_mask[hand].mean()
+    if max_sigma > 0:
+        assert tracker.background.capped
+        assert float(np.sqrt(tracker.background.var.max())) <= max_sigma + 1e-4
+        assert seen > 0.9
+        assert np.linalg.norm(blobs["l_hand"].mean - np.array(parts["l_hand"][1])) < 1.0
+    else:
+        assert seen < 0.1
+        assert "l_hand" not in blobs
+
+
+def test_background_max_sigma_below_the_floor_is_a_config_error():
+    with pytest.raises(InputError, match="background_max_sigma"):
+        BlobTrackerConfig(background_max_sigma=2.0)
+    with pytest.raises(InputError, match="background_max_sigma"):
+        BlobTrackerConfig(background_max_sigma=-1.0)
+    assert BlobTrackerConfig(background_max_sigma=0.0).background_max_sigma == 0.0
+
+
 def test_rendered_person_standing_still_is_not_erased_as_a_ghost():
     """The synthetic person walks while the background seeds, then stands still (tracked with
     exact projected priors) in front of the tiled floor, for 3 s: torso and legs keep their

@@ -33,6 +33,14 @@ taken into the background once it has stayed unchanged for
 than in the image (the outline of something that has left, not of something
 that is there) becomes background at once, unless it is in a tracked blob's support
 (a person standing still in front of a textured floor fails the edge test too).
+From the first tracked frame on, the per-channel sigma is capped at
+``background_max_sigma``: where the person stood in about half of the seed samples,
+the MAD is the spread between person and room (sigmas of 40-70 grey levels), and
+uncapped it decays only at the learning rate, so when the person comes back to
+where they started, a hand in front of the floor is within 5 of those sigmas and
+is not foreground (the self-occlusion scene: a hanging hand lost in all views at
+once). The cap waits for tracking because start-up has no priors to tell a ghost
+of the start position (foreground under the cap) from the person.
 
 Blob classes. Each tracked label k is a Gaussian over ``o`` with a spatial part
 (mean (2,), covariance (2, 2), px) and a colour part (mean (3,), covariance
@@ -169,6 +177,8 @@ class BlobTrackerConfig:
     background_threshold: float = 5.0
     #: floor of the per-pixel, per-channel background sigma, grey levels
     background_min_sigma: float = 3.0
+    #: cap of the per-pixel, per-channel background sigma, grey levels (0 = no cap)
+    background_max_sigma: float = 8.0
     #: median-filter aperture applied to the foreground mask, px (odd; <= 1 disables)
     foreground_median: int = 3
 
@@ -322,11 +332,13 @@ class BlobTrackerConfig:
             raise bad("connected_to", "must be a label name or ''")
         non_negative = ("connected_gap_px", "skin_min_intensity", "startup_skin_max_fraction", "temporal_velocity",
                         "temporal_motion_px", "min_component_fraction", "background_ghost_edge_ratio",
-                        "prior_confidence_inflation")
+                        "prior_confidence_inflation", "background_max_sigma")
         for name in non_negative:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise bad(name, "must be a non-negative number")
+        if 0 < self.background_max_sigma < self.background_min_sigma:
+            raise bad("background_max_sigma", "must be 0 (no cap) or at least background_min_sigma")
 
 
 # =========================================================================== features
@@ -449,6 +461,14 @@ class BackgroundModel:
         self._floor: np.ndarray | None = None
         self._diff2: np.ndarray | None = None
         self._previous: np.ndarray | None = None
+        self.capped = False  # whether background_max_sigma applies (from the first tracked frame)
+
+    def cap_variance(self) -> None:
+        """Cap the variance at ``background_max_sigma``² from now on (if configured)."""
+        if self.capped or self.var is None or self.config.background_max_sigma <= 0:
+            return
+        np.minimum(self.var, _F32(self.config.background_max_sigma**2), out=self.var)
+        self.capped = True
 
     @property
     def ready(self) -> bool:
@@ -524,6 +544,8 @@ class BackgroundModel:
             cv2.accumulateWeighted(self._diff2[box], self.var[box], rate, m[box])
             cv2.accumulateWeighted(image_f[box], self.mean[box], rate, m[box])
             cv2.max(self.var[box], self._floor[box], dst=self.var[box])
+            if self.capped:
+                np.minimum(self.var[box], _F32(cfg.background_max_sigma**2), out=self.var[box])
         self._diff2 = None
         if previous is None or previous.shape != image.shape:
             return
@@ -770,6 +792,7 @@ class BlobTracker2D:
         else:
             self.mode = "tracking"
             blobs, explained = self._track(img, fg, models)
+            self.background.cap_variance()
         self.background.update(img, img_f, ~fg, fg & ~explained)
         t1 = time.perf_counter()
         track = self.timings_ms
