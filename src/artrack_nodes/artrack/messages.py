@@ -134,6 +134,9 @@ def blob_array_msg(
 
 def _check_finite(items: list, fields: tuple[str, ...], what: str) -> None:
     """ValueError naming the first message field that holds NaN or infinity."""
+    if not items or np.isfinite(np.concatenate([np.ravel(getattr(item, name)) for item in items
+                                                for name in fields])).all():
+        return  # one test for the whole message; the loop below only names the culprit
     for i, item in enumerate(items):
         for name in fields:
             if not np.all(np.isfinite(getattr(item, name))):
@@ -194,6 +197,9 @@ def priors_from_msg(msg: Any) -> tuple[int, str, list[Prior2D]]:
     ]
     _check_finite(priors, ("confidence",), "priors")
     # a prior behind the camera carries NaN mean and covariance by design (projection.py)
+    seen = [p for p in priors if p.visibility != BEHIND_CAMERA]
+    if not seen or np.isfinite(np.concatenate([np.concatenate((p.mean, p.cov.ravel())) for p in seen])).all():
+        return stamp, msg.camera_name, priors
     for i, p in enumerate(priors):
         if p.visibility != BEHIND_CAMERA and not (np.all(np.isfinite(p.mean)) and np.all(np.isfinite(p.cov))):
             raise ValueError(f"priors[{i}] ({p.label!r}) has a non-finite mean or covariance "

@@ -186,7 +186,7 @@ class _Problem(NamedTuple):
 
 
 def _finite(b: Blob2D) -> bool:
-    return bool(np.all(np.isfinite(np.asarray(b.mean, float))) and np.all(np.isfinite(np.asarray(b.cov, float))))
+    return bool(np.isfinite(np.concatenate([np.ravel(b.mean), np.ravel(b.cov)])).all())
 
 
 def _set_up(
