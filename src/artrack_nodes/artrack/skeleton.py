@@ -108,9 +108,8 @@ mirrored hypothesis (heading + π, left <-> right) is fitted too and taken over 
 it explains the labelled blobs much better (knees and elbows bend one way only).
 While tracking (from the first tracked frame on, alongside the verification), the
 face check (``tracking.facing_*``, :func:`facing_agreement`) turns a body that faces
-backwards, with every left/right label swapped to match, round: the head's skin
-blob is the face in the views it looks at and only the neck behind it, so its sizes
-tell the facing that the blob positions cannot.
+backwards, with every left/right label swapped to match, round: the head's skin blob is the face in the views it looks at and only the
+neck behind it, so its sizes tell the facing that the blob positions cannot.
 A hand lost by its 2-D labels (one that moved faster than its prediction, so the
 gates around the prior found nothing) is re-acquired (``tracking.reacquire_*``,
 :meth:`_Estimator._reacquire`) where the views' unlabelled skin blobs meet within
