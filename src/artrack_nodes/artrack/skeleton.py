@@ -106,9 +106,9 @@ the rest pose rotated about z is fitted for each candidate, held near that headi
 ``tracking.verify_frames`` frames after any initialisation the
 mirrored hypothesis (heading + π, left <-> right) is fitted too and taken over if
 it explains the labelled blobs much better (knees and elbows bend one way only).
-While tracking (from the first tracked frame on, alongside the verification), the
-face check (``tracking.facing_*``, :func:`facing_agreement`) turns a body that faces
-backwards, with every left/right label swapped to match, round: the head's skin blob is the face in the views it looks at and only the
+While tracking, the face check (``tracking.facing_*``, :func:`facing_agreement`)
+turns a body that faces backwards, with every left/right label swapped to match,
+round: the head's skin blob is the face in the views it looks at and only the
 neck behind it, so its sizes tell the facing that the blob positions cannot.
 A hand lost by its 2-D labels (one that moved faster than its prediction, so the
 gates around the prior found nothing) is re-acquired (``tracking.reacquire_*``,
@@ -1218,9 +1218,7 @@ class _Estimator:
         self.last_observed = obs
         if self._verify_left > 0 and len(obs) >= cfg.min_blobs:
             self._verify_facing(stamp_ns, obs)
-        # the face check runs from the first tracked frame, alongside the verification: a body
-        # that starts facing backwards is turned round within facing_check_frames
-        if self.status == STATUS_TRACKING and cfg.facing_check_frames > 0:
+        elif self.status == STATUS_TRACKING and cfg.facing_check_frames > 0:
             self._check_facing(stamp_ns, blobs_by_camera, obs)
         return self._estimate(stamp_ns)
 
