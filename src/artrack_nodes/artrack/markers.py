@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from .body_model import BodyModel
 from .messages import MsgFactory, header_msg
-from .types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING, BodyEstimate
+from .types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING, BodyEstimate, all_finite
 
 # visualization_msgs/Marker constants
 SPHERE, LINE_LIST, SPHERE_LIST, TEXT_VIEW_FACING = 2, 5, 7, 9
@@ -34,10 +34,6 @@ def ellipsoid(cov: np.ndarray, sigmas: float = 1.0) -> tuple[np.ndarray, np.ndar
     if np.linalg.det(V) < 0:
         V[:, 0] = -V[:, 0]
     return 2.0 * sigmas * np.sqrt(np.clip(w, 0.0, None)), V
-
-
-def _finite(*arrays) -> bool:
-    return all(np.all(np.isfinite(a)) for a in arrays)
 
 
 class MarkerBuilder:
@@ -77,7 +73,7 @@ class MarkerBuilder:
     def _blob_markers(self, header, ns: str, blobs, color) -> list:
         out = []
         for i, b in enumerate(blobs):
-            if not _finite(b.mean, b.cov):
+            if not all_finite(b.mean, b.cov):
                 continue
             d, R = ellipsoid(np.asarray(b.cov, float), self.sigmas)
             out.append(self._marker(header, ns, i, SPHERE, d, color, pose=self._pose(b.mean, R), text=b.label))
@@ -93,13 +89,13 @@ class MarkerBuilder:
         markers = [clear]
         seg = []
         for lk in est.links:
-            if lk.name in self.ends and _finite(lk.position, lk.rotation):
+            if lk.name in self.ends and all_finite(lk.position, lk.rotation):
                 seg += [self._point(lk.position), self._point(lk.position + lk.rotation @ self.ends[lk.name])]
         if seg:
             markers.append(self._marker(header, "bones", 0, LINE_LIST, (0.02, 0, 0), self._color(0.9, 0.9, 0.2),
                                         points=seg))
         joints = np.asarray(est.joints, float).reshape(-1, 3)
-        pts = [self._point(p) for p in joints if _finite(p)]
+        pts = [self._point(p) for p in joints if all_finite(p)]
         if pts:
             markers.append(self._marker(header, "joints", 0, SPHERE_LIST, (0.05, 0.05, 0.05),
                                         self._color(1.0, 0.3, 0.1), points=pts))
@@ -107,7 +103,7 @@ class MarkerBuilder:
         if prediction is not None:
             markers += self._blob_markers(header, "predicted_blobs", prediction.blobs, self._color(0.2, 1.0, 0.3, 0.3))
         top = joints[list(est.joint_names).index("head")] if "head" in est.joint_names else None
-        if top is not None and _finite(top):
+        if top is not None and all_finite(top):
             text = f"body {body_id}: {STATUS_NAMES.get(int(est.status), est.status)} q={est.quality:.2f}"
             markers.append(self._marker(header, "status", 0, TEXT_VIEW_FACING, (0, 0, 0.1), self._color(1, 1, 1),
                                         pose=self._pose(top + np.array([0.0, 0.0, 0.3])), text=text))
@@ -115,5 +111,5 @@ class MarkerBuilder:
 
     def pose_array(self, est: BodyEstimate, frame_id: str):
         """geometry_msgs/PoseArray of the link frames (body-model link order, finite ones)."""
-        poses = [self._pose(lk.position, lk.rotation) for lk in est.links if _finite(lk.position, lk.rotation)]
+        poses = [self._pose(lk.position, lk.rotation) for lk in est.links if all_finite(lk.position, lk.rotation)]
         return self.f("geometry_msgs/msg/PoseArray", header=header_msg(self.f, est.stamp_ns, frame_id), poses=poses)

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from .cameras import Camera
 from .errors import CalibrationError
-from .types import BEHIND_CAMERA, Blob2D, Blob3D, BodyEstimate, LinkEstimate, Prior2D
+from .types import BEHIND_CAMERA, Blob2D, Blob3D, BodyEstimate, LinkEstimate, Prior2D, all_finite
 
 WORLD_FRAME = "world"
 
@@ -134,12 +134,11 @@ def blob_array_msg(
 
 def _check_finite(items: list, fields: tuple[str, ...], what: str) -> None:
     """ValueError naming the first message field that holds NaN or infinity."""
-    if not items or np.isfinite(np.concatenate([np.ravel(getattr(item, name)) for item in items
-                                                for name in fields])).all():
+    if all_finite(*(getattr(item, name) for item in items for name in fields)):
         return  # one test for the whole message; the loop below only names the culprit
     for i, item in enumerate(items):
         for name in fields:
-            if not np.all(np.isfinite(getattr(item, name))):
+            if not all_finite(getattr(item, name)):
                 raise ValueError(f"{what}[{i}].{name} is not finite")
 
 
@@ -197,11 +196,10 @@ def priors_from_msg(msg: Any) -> tuple[int, str, list[Prior2D]]:
     ]
     _check_finite(priors, ("confidence",), "priors")
     # a prior behind the camera carries NaN mean and covariance by design (projection.py)
-    seen = [p for p in priors if p.visibility != BEHIND_CAMERA]
-    if not seen or np.isfinite(np.concatenate([np.concatenate((p.mean, p.cov.ravel())) for p in seen])).all():
+    if all_finite(*(a for p in priors if p.visibility != BEHIND_CAMERA for a in (p.mean, p.cov))):
         return stamp, msg.camera_name, priors
     for i, p in enumerate(priors):
-        if p.visibility != BEHIND_CAMERA and not (np.all(np.isfinite(p.mean)) and np.all(np.isfinite(p.cov))):
+        if p.visibility != BEHIND_CAMERA and not all_finite(p.mean, p.cov):
             raise ValueError(f"priors[{i}] ({p.label!r}) has a non-finite mean or covariance "
                              "but is not behind the camera")
     return stamp, msg.camera_name, priors

@@ -46,7 +46,7 @@ import numpy as np
 
 from .cameras import Camera
 from .errors import InputError
-from .types import Blob2D, Blob3D
+from .types import Blob2D, Blob3D, all_finite
 
 __all__ = [
     "associate_views",
@@ -186,7 +186,7 @@ class _Problem(NamedTuple):
 
 
 def _finite(b: Blob2D) -> bool:
-    return bool(np.isfinite(np.concatenate([np.ravel(b.mean), np.ravel(b.cov)])).all())
+    return all_finite(b.mean, b.cov)
 
 
 def _set_up(

@@ -23,6 +23,11 @@ OFF_IMAGE = 2
 OCCLUDED = 3
 
 
+def all_finite(*arrays) -> bool:
+    """Whether every value of the given arrays (any shapes) is finite: one numpy call for all."""
+    return not arrays or bool(np.isfinite(np.concatenate([np.ravel(a) for a in arrays])).all())
+
+
 @dataclass
 class Blob2D:
     """One 2-D blob in one camera image (ALGORITHMS.md §1, "2-D blobs").
