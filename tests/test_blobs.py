@@ -439,6 +439,39 @@ def test_a_hand_that_left_its_prior_is_reported_as_unlabelled_skin():
             assert skin == []
 
 
+@pytest.mark.parametrize("ratio", [1.0, 0.0])
+def test_a_skin_label_spread_past_its_prior_is_not_reported(ratio):
+    """``max_prior_area_ratio``: the left hand's prior is a disc of radius 8 px, but the skin there is
+    a disc of radius 18 (a hand over a bare forearm, or both hands together). The label's pixels
+    (about the 3.5-sigma gate's 800) outnumber its prior's 2-sigma ellipse (4π√det S, ~260 px), so
+    with the rule the label is not reported and its pixels come back as unlabelled skin, from which
+    the 3-D stage may re-acquire the hand; without it (0) the label is reported over them all. The
+    head and the right hand, inside their priors, are reported either way."""
+    tracker = make_tracker(max_prior_area_ratio=ratio)
+    seed_with_moving_person(tracker)
+    parts = default_parts()
+    spread = {**parts, "l_hand": ("disc", parts["l_hand"][1], 18.0, SKIN_BGR)}
+    img, _ = render(spread, 90)
+    blobs = tracker.step(img, priors_for(parts))
+    labelled = by_label(blobs)
+    assert {"head", "r_hand", "torso"} <= set(labelled)
+    cov = 1.3 * disc_cov(8.0) + 1.5**2 * np.eye(2)  # the prior + min_sigma_px²
+    prior_area = 4.0 * np.pi * np.sqrt(np.linalg.det(cov))
+    if ratio > 0:
+        assert "l_hand" not in labelled
+        skin = [b for b in blobs if b.label == SKIN]
+        assert len(skin) == 1
+        assert np.linalg.norm(skin[0].mean - np.array(parts["l_hand"][1])) < 1.5
+        assert skin[0].pixel_count > prior_area
+    else:
+        assert labelled["l_hand"].pixel_count > 2 * prior_area
+
+
+def test_oversized_ratio_must_be_non_negative():
+    with pytest.raises(InputError, match="max_prior_area_ratio"):
+        BlobTrackerConfig(max_prior_area_ratio=-0.5)
+
+
 def test_distractor_far_from_the_prior_does_not_steal_the_label():
     tracker = make_tracker()
     seed_with_moving_person(tracker)

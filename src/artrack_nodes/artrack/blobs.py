@@ -100,6 +100,10 @@ prediction finds nothing. While tracking, whenever a label of the skin colour cl
 no pixels in this view, the tracker also reports up to ``lost_skin_blobs`` unlabelled
 skin-coloured foreground components (label ``skin``, as at start-up); the 3-D stage
 triangulates them and re-acquires the hand (``skeleton`` ``tracking.reacquire_*``).
+The opposite failure, a skin label spread over more skin than its part (the other hand,
+the face): a label of the skin class whose pixels outnumber ``max_prior_area_ratio``
+times its projected 3-D prior's 2-sigma ellipse area is not reported, and its pixels
+come back among those unlabelled skin components.
 
 Weak points: a person standing still through the whole seed is background
 until they move (the ghost they leave then heals within about
@@ -245,6 +249,9 @@ class BlobTrackerConfig:
     #: image width (px) for which min_blob_pixels is given: a camera w px wide uses
     #: min_blob_pixels * (w / min_blob_pixels_width)² (a hand's area scales so); 0 = no scaling
     min_blob_pixels_width: float = 640.0
+    #: while tracking, a skin label with more pixels than this many times the area of its projected
+    #: 3-D prior's 2-sigma ellipse (4π√det S) is not reported (0 = never; BlobTracker2D._oversized)
+    max_prior_area_ratio: float = 1.0
     #: a label's 8-connected pieces smaller than this fraction of its largest piece are dropped (0 = keep all)
     min_component_fraction: float = 0.1
     #: while tracking, only foreground 8-connected to the pixels labelled with this label (e.g. 'torso':
@@ -332,7 +339,7 @@ class BlobTrackerConfig:
             raise bad("connected_to", "must be a label name or ''")
         non_negative = ("connected_gap_px", "skin_min_intensity", "startup_skin_max_fraction", "temporal_velocity",
                         "temporal_motion_px", "min_component_fraction", "background_ghost_edge_ratio",
-                        "prior_confidence_inflation", "background_max_sigma")
+                        "prior_confidence_inflation", "background_max_sigma", "max_prior_area_ratio")
         for name in non_negative:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
@@ -622,6 +629,7 @@ class _ClassModel:
     rect: tuple[int, int, int, int] = (0, 0, 0, 0)  # x0, y0, x1, y1 (exclusive)
     det: float = 1.0  # det(cov), > 0
     precision: np.ndarray | None = None  # cov⁻¹ (2, 2)
+    from_prior: bool = False  # the spatial prior is a projected 3-D prior (not the temporal one)
 
 
 def _scale_gaussian(mean: np.ndarray, cov: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -850,7 +858,7 @@ class BlobTracker2D:
                 cov = cfg.temporal_inflation * tr.cov + motion + floor
                 weight = cfg.temporal_weight
                 log_conf = 0.0
-            m = _ClassModel(i, mean, cov, weight, colour, log_conf)
+            m = _ClassModel(i, mean, cov, weight, colour, log_conf, from_prior=p is not None)
             m.rect = _rect(mean, cov, cfg.roi_sigma, W, H)
             if m.rect[2] > m.rect[0] and m.rect[3] > m.rect[1]:
                 models.append(m)
@@ -940,7 +948,7 @@ class BlobTracker2D:
                     if kept < n:
                         pos = pos[support[ys[sel[pos]], xs[sel[pos]]] == m.index]
                         n = pos.size
-                if n < min_px:
+                if n < min_px or self._oversized(m, n):
                     support[ys[sel[pos]], xs[sel[pos]]] = -1
                     continue
                 pts = np.stack([xs[sel[pos]], ys[sel[pos]]], axis=1).astype(float)
@@ -976,6 +984,15 @@ class BlobTracker2D:
         blobs += self._lost_skin_blobs(img, fg, support, seen)
         self.timings_ms = {"classification": 1e3 * (t1 - t0), "statistics": 1e3 * (time.perf_counter() - t1)}
         return blobs, support >= 0
+
+    def _oversized(self, m: _ClassModel, n: int) -> bool:
+        """A skin label whose n pixels (work px) outnumber ``max_prior_area_ratio`` times the area
+        of its projected 3-D prior's 2-sigma ellipse (4π√det S) has spread past its part (e.g. a
+        hand's label over the face or the other hand): it is not reported, its pixels stay
+        unlabelled, and the 3-D stage may re-acquire the part from them (``lost_skin_blobs``)."""
+        r = self.config.max_prior_area_ratio
+        return (r > 0 and m.from_prior and self.colour_classes[self.labels[m.index]] == SKIN
+                and n > r * 4.0 * math.pi * math.sqrt(m.det))
 
     def _keep_connected(self, fg: np.ndarray, models: list[_ClassModel], box: tuple[int, int, int, int],
                         cols: np.ndarray, rows: np.ndarray, lab: np.ndarray) -> None:
