@@ -265,8 +265,9 @@ def test_startup_from_foreground_and_skin_gives_right_facing(body, cameras, yaw)
 
 def test_startup_picks_the_person_at_start_xy(body, cameras):
     """Two people in view: the other one stands 0.25 m higher (on a step), so their face is the
-    highest skin point and the plain start-up takes it; with startup.start_xy / start_radius_m
-    on the first person, the start is on them."""
+    highest skin point and the plain start-up (no start radius, no person grouping) takes it.
+    With startup.start_xy on the first person, the start is on them, whether by start_radius_m or
+    by grouping the skin points into people (person_gap_m, the default) and taking the nearest."""
     theta = body.rest_pose()
     theta[0:6] = [0.3, -0.2, 0.95, 0.0, 0.0, 0.5]
     other = body.rest_pose()
@@ -276,13 +277,40 @@ def test_startup_picks_the_person_at_start_xy(body, cameras):
         blobs[name] += [b for b in extra if b.label == "skin"]
     head = body.blob_centres(theta)[body.blob_labels.index("head")]
     dist = {}
-    for radius in (0.0, 0.7):
-        cfg = {"startup": {"max_skin_blobs_per_camera": 6, "start_xy": [0.3, -0.2], "start_radius_m": radius}}
+    for radius, gap in ((0.0, 0.0), (0.7, 0.0), (0.0, 1.0)):
+        cfg = {"startup": {"max_skin_blobs_per_camera": 6, "start_xy": [0.3, -0.2], "start_radius_m": radius,
+                           "person_gap_m": gap}}
         e = make_estimator("baseline", body, cameras, cfg).update(stamp(0), blobs)
         assert e.status == STATUS_TRACKING
-        dist[radius] = float(np.linalg.norm(_hand(e, "head") - head))
-    assert dist[0.0] > 0.5, dist
-    assert dist[0.7] < 0.08, dist
+        dist[radius, gap] = float(np.linalg.norm(_hand(e, "head") - head))
+    assert dist[0.0, 0.0] > 0.5, dist
+    assert dist[0.7, 0.0] < 0.08, dist
+    assert dist[0.0, 1.0] < 0.08, dist
+
+
+def test_nearest_person_groups_skin_points_by_horizontal_gaps():
+    """Single linkage at person_gap_m: a face and two hands 0.4 m apart are one person, a face and
+    a hand 4 m away another; the fuller group wins over a lone point nearer start_xy, and of equal
+    groups the one whose highest point is nearer start_xy."""
+    from artrack.skeleton import nearest_person
+
+    def pt(x, y, z):
+        return (np.array([x, y, z], float), 0.0, ("cam01", "cam02"), None)
+
+    me = [pt(2.0, 0.0, 1.6), pt(2.3, 0.3, 1.0), pt(1.7, -0.3, 1.0)]
+    other = [pt(-2.0, 0.0, 1.7), pt(-2.3, 0.2, 1.1)]
+    lone = [pt(0.0, 0.1, 1.5)]
+    xy = np.zeros(2)
+
+    def picks(points, at=xy):
+        return [id(p) for p in nearest_person(points, at, 1.0)]
+
+    assert picks(me + other) == [id(p) for p in me]
+    assert picks(other + me + lone) == [id(p) for p in me]
+    two = [pt(0.0, 3.0, 1.7), pt(0.1, 3.3, 1.1), pt(-0.1, 2.7, 1.1)]
+    assert picks(two + me) == [id(p) for p in me]
+    assert picks(two + me, np.array([0.0, 3.0])) == [id(p) for p in two]
+    assert picks(me) == [id(p) for p in me]
 
 
 @pytest.mark.parametrize("yaw", [0.0, 1.2, 2.6, -2.0])
@@ -981,6 +1009,35 @@ def test_a_lost_hand_is_reacquired_from_unlabelled_skin_blobs(body, cameras):
     assert est.reacquired == []
 
 
+@pytest.mark.parametrize("margin", [1.3, 0.0])
+def test_a_hand_observed_out_of_reach_is_not_used(body, cameras, margin):
+    """tracking.reach_gate_margin: in every view the left hand's label sits on skin 1.2 m to the
+    person's side (another person's face), so its views agree on a 3-D blob far out of the arm's
+    reach. With the gate (1.3 x the reach from the shoulder) that blob is not used: the frame's
+    estimate is the one the fit gives with the hand unseen; without it (0) the fit pulls the arm
+    towards the far blob."""
+    theta = _test_pose(body)
+    hand = body.blob_centres(theta)[body.blob_labels.index("l_hand")]
+    far = hand + np.array([0.0, 1.2, 0.0])
+    hidden = blobs_2d(body, cameras, theta, hide=("l_hand",))
+    moved = {c: bl + [dataclasses.replace(b, label="l_hand") for b in _skin_blobs_at(cameras, [far])[c]]
+             for c, bl in hidden.items()}
+    wrist = body.joint_names.index("l_wrist")
+    result = {}
+    for name, frame in (("hidden", hidden), ("moved", moved)):
+        est = make_estimator("baseline", body, cameras, {"tracking": {"reach_gate_margin": margin}})
+        for k in range(3):
+            est.update(stamp(k), blobs_2d(body, cameras, theta))
+        result[name] = est.update(stamp(3), frame).joints[wrist]
+    to_far = {k: float(np.linalg.norm(w - far)) for k, w in result.items()}
+    if margin > 0:
+        assert "l_hand" not in est.last_observed
+        assert np.allclose(result["moved"], result["hidden"], atol=1e-9), to_far
+    else:
+        assert "l_hand" in est.last_observed
+        assert to_far["moved"] < to_far["hidden"] - 0.2, to_far
+
+
 def test_reacquire_config_errors(body, cameras):
     with pytest.raises(InputError, match="fit.predict_velocity_links"):
         make_estimator("baseline", body, cameras, {"fit": {"predict_velocity_links": ["l_wing"]}})
@@ -990,6 +1047,10 @@ def test_reacquire_config_errors(body, cameras):
         make_estimator("baseline", body, cameras, {"tracking": {"reacquire_labels": ["l_wing"]}})
     with pytest.raises(InputError, match="tracking.reacquire_separation_m"):
         load_skeleton_config({"tracking": {"reacquire_separation_m": -1.0}})
+    with pytest.raises(InputError, match="tracking.reach_gate_margin"):
+        load_skeleton_config({"tracking": {"reach_gate_margin": -1.0}})
+    with pytest.raises(InputError, match="startup.person_gap_m"):
+        load_skeleton_config({"startup": {"person_gap_m": -0.5}})
 
 
 def test_baseline_prediction_extrapolates_the_joint_velocities(body, cameras):

@@ -95,7 +95,9 @@ from the start-up classes: the ``foreground`` blob is triangulated to the body
 centre, ``skin`` blobs are matched across views (candidate correspondences seeded
 from camera pairs, extended to the other views, scored by reprojection error,
 picked greedily; with ``startup.start_radius_m`` > 0 only those within that horizontal
-distance of ``startup.start_xy``: the person standing there when several are in view),
+distance of ``startup.start_xy``: the person standing there when several are in view;
+and, with ``startup.person_gap_m`` > 0, grouped into people by their horizontal gaps, of
+which the fullest group whose face is nearest ``start_xy`` is kept, :func:`nearest_person`),
 the highest becomes the head (face), the two others the hands (a hand must be
 matched in ``startup.min_hand_views`` views: a point only two views agree on is more
 often a skin-coloured ghost);
@@ -115,7 +117,10 @@ gates around the prior found nothing) is re-acquired (``tracking.reacquire_*``,
 :meth:`_Estimator._reacquire`) where the views' unlabelled skin blobs meet within
 the arm's reach of its shoulder, away from the other observed blobs; the baseline
 first fits the arm alone to it, since the robust fit would take a target that far
-from the old pose for an outlier.
+from the old pose for an outlier. The opposite case, a hand's labels that agree across
+views on a point beyond the arm's reach (``tracking.reach_gate_margin`` times it, from
+the shoulder of the current pose: the label sits on another person's face), is not used
+(:meth:`_Estimator._gate_reach`), and the hand may then be re-acquired.
 ``STATUS_LOST`` after ``tracking.lost_after_frames`` consecutive frames with fewer
 than ``tracking.min_blobs`` usable blobs (triangulated; for the Kalman tracker:
 passing the innovation gate); while lost, ``predict`` carries no blobs (so the
@@ -239,6 +244,10 @@ class TrackingConfig:
     reacquire_separation_m: float = 0.15
     #: ... and within this many times the part's reach (the bone chain from its shoulder) of its shoulder
     reacquire_reach_margin: float = 1.1
+    #: a 3-D blob of ``reacquire_labels`` triangulated farther than this many times the part's reach
+    #: from its shoulder in the current pose is not used (the hand's label sits on something else:
+    #: another person's face), and the part may be re-acquired; 0 = never
+    reach_gate_margin: float = 1.3
 
 
 def _default_rest_sigmas() -> dict[str, float]:
@@ -356,6 +365,9 @@ class StartupConfig:
     start_radius_m: float = 0.0
     heading_sigma_rad: float = 0.35
     min_hand_views: int = 3
+    #: skin points farther apart than this horizontally (single linkage) are different people; with
+    #: several, start-up starts on the one whose highest point (the face) is nearest ``start_xy``; 0 = off
+    person_gap_m: float = 1.0
 
 
 @dataclass
@@ -410,7 +422,9 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
     non_negative = (("fit.ground_sigma_m", out.fit.ground_sigma_m),
                     ("fit.mirror_screen_ratio", out.fit.mirror_screen_ratio),
                     ("fit.mirror_prescreen_ratio", out.fit.mirror_prescreen_ratio),
-                    ("startup.start_radius_m", out.startup.start_radius_m))
+                    ("startup.start_radius_m", out.startup.start_radius_m),
+                    ("startup.person_gap_m", out.startup.person_gap_m),
+                    ("tracking.reach_gate_margin", out.tracking.reach_gate_margin))
     for name, value in non_negative:
         if value < 0:
             raise InputError(f"skeleton config: field '{name}' must be >= 0 (got {value!r})")
@@ -899,6 +913,39 @@ def _in_gate(blob: Blob2D, uv: np.ndarray, gate_sigma: float, gate_px: float) ->
     return (d2 <= gate_sigma**2 or d_px <= gate_px), d_px
 
 
+def nearest_person(points: list, xy: np.ndarray, gap_m: float) -> list:
+    """The start-up skin points (:func:`match_skin_blobs` tuples, point first) of the person nearest
+    ``xy`` (2,) m: the points are grouped by single linkage on their horizontal distances (groups
+    farther apart than ``gap_m`` are different people); of the groups with the most points (up to
+    three: a face and two hands; a lone point is more often a ghost), the one whose highest point
+    (the face) lies nearest ``xy`` horizontally is returned, in the input order."""
+    n = len(points)
+    xy_all = np.array([p[0][:2] for p in points], float)
+    group = list(range(n))
+
+    def root(i: int) -> int:
+        while group[i] != i:
+            i = group[i]
+        return i
+
+    for i in range(n):
+        for j in range(i + 1, n):
+            if np.linalg.norm(xy_all[i] - xy_all[j]) <= gap_m:
+                group[root(j)] = root(i)
+    roots = [root(i) for i in range(n)]
+    if len(set(roots)) == 1:
+        return points
+
+    def face_distance(r: int) -> float:
+        members = [i for i in range(n) if roots[i] == r]
+        top = max(members, key=lambda i: points[i][0][2])
+        return float(np.linalg.norm(xy_all[top] - xy))
+
+    size = {r: roots.count(r) for r in set(roots)}
+    best = min(set(roots), key=lambda r: (-min(size[r], 3), face_distance(r)))
+    return [p for p, r in zip(points, roots, strict=True) if r == best]
+
+
 def match_skin_blobs(
     skin_by_camera: Mapping[str, Sequence[Blob2D]],
     cameras: Mapping[str, Camera],
@@ -1096,6 +1143,17 @@ class _Estimator:
             i = int(kin.parent[i])
         return i, length
 
+    def _gate_reach(self, obs: dict[str, Blob3D]) -> None:
+        """Drop (in place) the 3-D blobs of ``tracking.reacquire_labels`` that lie farther than
+        ``reach_gate_margin`` times the part's reach from its shoulder in the current pose."""
+        margin = self.cfg.tracking.reach_gate_margin
+        if margin <= 0:
+            return
+        p, _ = self.kin.poses(self.theta)
+        for lab, (top, reach) in self._reacquire_chain.items():
+            if lab in obs and float(np.linalg.norm(obs[lab].mean - p[top])) > margin * reach:
+                del obs[lab]
+
     def _reacquire(self, blobs_by_camera, obs: dict[str, Blob3D]) -> list[str]:
         """Lost parts found again (ALGORITHMS.md §1: the 2-D trackers follow the 3-D priors, so a
         part whose prior has left it, e.g. a hand that rose faster than the prediction, is not
@@ -1203,7 +1261,9 @@ class _Estimator:
             if self.theta is None:
                 self.stamp_ns = stamp_ns
                 return BodyEstimate.empty(self.body.joint_names, stamp_ns, STATUS_INITIALIZING)
-        self.reacquired = self._reacquire(blobs_by_camera, obs) if self.status == STATUS_TRACKING else []
+        if self.status == STATUS_TRACKING:
+            self._gate_reach(obs)
+            self.reacquired = self._reacquire(blobs_by_camera, obs)
         t1 = time.perf_counter()
         self._step(stamp_ns, obs)  # may add its own stages to timings_ms
         stages = sum(v for k, v in self.timings_ms.items() if k != "triangulation")
@@ -1426,6 +1486,11 @@ class _Estimator:
             points = [p for p in points if np.linalg.norm(p[0][:2] - xy) <= s.start_radius_m]
             if centre is not None and np.linalg.norm(centre[:2] - xy) > s.start_radius_m:
                 centre = None
+        if s.person_gap_m > 0 and len(points) > 1:
+            points = nearest_person(points, np.asarray(s.start_xy, float).reshape(2), s.person_gap_m)
+            top = max((p[0] for p in points), key=lambda x: x[2])
+            if centre is not None and np.linalg.norm(centre[:2] - top[:2]) > s.person_gap_m:
+                centre = None  # the foreground's centre mixes the people
         if not points:
             return None
         # The face is the highest skin point; hands are the best-scoring others within
