@@ -118,7 +118,7 @@ gates around the prior found nothing) is re-acquired (``tracking.reacquire_*``,
 the arm's reach of its shoulder, away from the other observed blobs; the baseline
 first fits the arm alone to it, since the robust fit would take a target that far
 from the old pose for an outlier. The opposite case, a hand's labels that agree across
-views on a point beyond the arm's reach (``tracking.reach_gate_margin`` times it, from
+views (two or more) on a point beyond the arm's reach (``tracking.reach_gate_margin`` times it, from
 the shoulder of the current pose: the label sits on another person's face), is not used
 (:meth:`_Estimator._gate_reach`), and the hand may then be re-acquired.
 ``STATUS_LOST`` after ``tracking.lost_after_frames`` consecutive frames with fewer
@@ -244,7 +244,7 @@ class TrackingConfig:
     reacquire_separation_m: float = 0.15
     #: ... and within this many times the part's reach (the bone chain from its shoulder) of its shoulder
     reacquire_reach_margin: float = 1.1
-    #: a 3-D blob of ``reacquire_labels`` triangulated farther than this many times the part's reach
+    #: a 3-D blob of ``reacquire_labels`` triangulated (two or more views) farther than this many times the part's reach
     #: from its shoulder in the current pose is not used (the hand's label sits on something else:
     #: another person's face), and the part may be re-acquired; 0 = never
     reach_gate_margin: float = 1.3
@@ -1144,14 +1144,18 @@ class _Estimator:
         return i, length
 
     def _gate_reach(self, obs: dict[str, Blob3D]) -> None:
-        """Drop (in place) the 3-D blobs of ``tracking.reacquire_labels`` that lie farther than
-        ``reach_gate_margin`` times the part's reach from its shoulder in the current pose."""
+        """Drop (in place) the 3-D blobs of ``tracking.reacquire_labels`` seen in two or more views
+        that lie farther than ``reach_gate_margin`` times the part's reach from its shoulder in the
+        current pose (a one-view blob's depth is the prior's, so its distance says little; gating
+        those too left the self-occlusion scene's hands off longer: seeds 1-6, 115 -> 122 frames
+        over 150 mm)."""
         margin = self.cfg.tracking.reach_gate_margin
         if margin <= 0:
             return
         p, _ = self.kin.poses(self.theta)
         for lab, (top, reach) in self._reacquire_chain.items():
-            if lab in obs and float(np.linalg.norm(obs[lab].mean - p[top])) > margin * reach:
+            if (lab in obs and len(obs[lab].cameras) >= 2
+                    and float(np.linalg.norm(obs[lab].mean - p[top])) > margin * reach):
                 del obs[lab]
 
     def _reacquire(self, blobs_by_camera, obs: dict[str, Blob3D]) -> list[str]:
