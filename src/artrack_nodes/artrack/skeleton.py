@@ -366,7 +366,8 @@ class StartupConfig:
     heading_sigma_rad: float = 0.35
     min_hand_views: int = 3
     #: skin points farther apart than this horizontally (single linkage) are different people; with
-    #: several, start-up starts on the one whose highest point (the face) is nearest ``start_xy``; 0 = off
+    #: several, start-up starts on the fullest group (up to three points) whose highest point (the
+    #: face) is nearest ``start_xy`` (:func:`nearest_person`); 0 = off
     person_gap_m: float = 1.0
 
 
