@@ -474,8 +474,13 @@ class BackgroundModel:
         """Cap the variance at ``background_max_sigma``² from now on (if configured)."""
         if self.capped or self.var is None or self.config.background_max_sigma <= 0:
             return
-        np.minimum(self.var, _F32(self.config.background_max_sigma**2), out=self.var)
+        np.minimum(self.var, self._max_var, out=self.var)
         self.capped = True
+
+    @property
+    def _max_var(self) -> np.float32:
+        """background_max_sigma² (the variance cap)."""
+        return _F32(self.config.background_max_sigma**2)
 
     @property
     def ready(self) -> bool:
@@ -552,7 +557,7 @@ class BackgroundModel:
             cv2.accumulateWeighted(image_f[box], self.mean[box], rate, m[box])
             cv2.max(self.var[box], self._floor[box], dst=self.var[box])
             if self.capped:
-                np.minimum(self.var[box], _F32(cfg.background_max_sigma**2), out=self.var[box])
+                np.minimum(self.var[box], self._max_var, out=self.var[box])
         self._diff2 = None
         if previous is None or previous.shape != image.shape:
             return

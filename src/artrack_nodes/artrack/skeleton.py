@@ -142,6 +142,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.linalg import null_space
 from scipy.optimize import least_squares
 
@@ -920,31 +921,20 @@ def nearest_person(points: list, xy: np.ndarray, gap_m: float) -> list:
     farther apart than ``gap_m`` are different people); of the groups with the most points (up to
     three: a face and two hands; a lone point is more often a ghost), the one whose highest point
     (the face) lies nearest ``xy`` horizontally is returned, in the input order."""
-    n = len(points)
+    if len(points) < 2:
+        return points
     xy_all = np.array([p[0][:2] for p in points], float)
-    group = list(range(n))
-
-    def root(i: int) -> int:
-        while group[i] != i:
-            i = group[i]
-        return i
-
-    for i in range(n):
-        for j in range(i + 1, n):
-            if np.linalg.norm(xy_all[i] - xy_all[j]) <= gap_m:
-                group[root(j)] = root(i)
-    roots = [root(i) for i in range(n)]
-    if len(set(roots)) == 1:
+    group = fcluster(linkage(xy_all, "single"), gap_m, criterion="distance")
+    groups = {g: np.flatnonzero(group == g) for g in set(group.tolist())}
+    if len(groups) == 1:
         return points
 
-    def face_distance(r: int) -> float:
-        members = [i for i in range(n) if roots[i] == r]
+    def rank(members: np.ndarray) -> tuple[int, float]:
         top = max(members, key=lambda i: points[i][0][2])
-        return float(np.linalg.norm(xy_all[top] - xy))
+        return -min(len(members), 3), float(np.linalg.norm(xy_all[top] - xy))
 
-    size = {r: roots.count(r) for r in set(roots)}
-    best = min(set(roots), key=lambda r: (-min(size[r], 3), face_distance(r)))
-    return [p for p, r in zip(points, roots, strict=True) if r == best]
+    best = min(groups, key=lambda g: rank(groups[g]))
+    return [p for p, g in zip(points, group, strict=True) if g == best]
 
 
 def match_skin_blobs(
@@ -1491,16 +1481,16 @@ class _Estimator:
             points = [p for p in points if np.linalg.norm(p[0][:2] - xy) <= s.start_radius_m]
             if centre is not None and np.linalg.norm(centre[:2] - xy) > s.start_radius_m:
                 centre = None
-        if s.person_gap_m > 0 and len(points) > 1:
+        grouped = s.person_gap_m > 0 and len(points) > 1
+        if grouped:
             points = nearest_person(points, np.asarray(s.start_xy, float).reshape(2), s.person_gap_m)
-            top = max((p[0] for p in points), key=lambda x: x[2])
-            if centre is not None and np.linalg.norm(centre[:2] - top[:2]) > s.person_gap_m:
-                centre = None  # the foreground's centre mixes the people
         if not points:
             return None
         # The face is the highest skin point; hands are the best-scoring others within
         # arm's reach of it (skin-coloured clutter elsewhere is ignored).
         face = max((p[0] for p in points), key=lambda x: x[2])
+        if grouped and centre is not None and np.linalg.norm(centre[:2] - face[:2]) > s.person_gap_m:
+            centre = None  # the foreground's centre mixes the people
         # A hand seen in fewer views than min_hand_views (of the cameras with skin blobs) is more
         # often a skin-coloured ghost of the seeding period that two views happen to agree on.
         need = min(s.min_hand_views, sum(1 for sk in skin.values() if sk))
