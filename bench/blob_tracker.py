@@ -25,8 +25,9 @@ live graph) on the synthetic scenes of ``bench/closed_loop.py`` (cached bags, 4 
 
 Ends with one JSON line: mpjpe_mm, head_hands_rms_mm, line_ratio, rotation_ratio,
 occlusion_max_hand_err_mm_feedback, occlusion_max_hand_err_mm_no_feedback, fps_320x240,
-fps_640x480 (all for the ``--skeleton`` estimator, feedback on), plus the raw tracker's and the
-oracle's figures for comparison. Run from the repository root (about 15 min on 2 cores)::
+fps_640x480 (all for the ``--skeleton`` estimator, feedback on), plus the raw tracker's, the
+raw tracker's with the edge features fused (``baseline+edges``, section 1) and the oracle's
+figures for comparison. Run from the repository root (about 15 min on 2 cores)::
 
     .venv/bin/python bench/blob_tracker.py
     .venv/bin/python bench/blob_tracker.py --skeleton baseline     # the graph's default estimator
@@ -174,6 +175,10 @@ def main() -> int:
             res[("default", e, src)] = r
             print(f"{e:<11}{src:<9}{fmt(r['mpjpe_mm'])}{fmt(r['head_hands_rms_mm'], '19.1f')}"
                   f"{fmt(r['limbs_mm'])}{100 * r['tracked']:10.0f}", flush=True)
+    # the raw tracker with the edge features fused (ALGORITHMS.md §2 "Fusion"; issue 4's blobs + edges)
+    r = res[("default", "baseline+edges", "tracked")] = cl.run(bag("default"), "default", "baseline+edges", True, body)
+    print(f"{'baseline+edges':<20}{fmt(r['mpjpe_mm'])}{fmt(r['head_hands_rms_mm'], '19.1f')}"
+          f"{fmt(r['limbs_mm'])}{100 * r['tracked']:10.0f}  {r['fps']:.1f} frames/s", flush=True)
 
     print("\n2. The paper's table (right hand; skeleton / raw tracker, claim <= 0.7)")
     print(f"{'scene':<10}{'truth':>8}{'raw':>9}{'skeleton':>10}{'ratio':>7}")
@@ -232,6 +237,8 @@ def main() -> int:
         "fps_320x240": fps.get((sk, 320, 240), float("nan")),
         "fps_640x480": fps.get((sk, 640, 480), float("nan")),
         "raw_mpjpe_mm": res[("default", raw, "tracked")]["mpjpe_mm"],
+        "blobs_edges_mpjpe_mm": res[("default", "baseline+edges", "tracked")]["mpjpe_mm"],
+        "blobs_edges_head_hands_rms_mm": res[("default", "baseline+edges", "tracked")]["head_hands_rms_mm"],
         "oracle_blobs_mpjpe_mm": res[("default", sk, "oracle")]["mpjpe_mm"],
         "oracle_labels_mpjpe_mm": res[("default", sk, "labels")]["mpjpe_mm"],
         "distractor_jump_frames_feedback": res[("distractor", sk, True)]["jump_frames"],

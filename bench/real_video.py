@@ -196,6 +196,9 @@ def main() -> int:
     ap.add_argument("--blob-config", default=str(REPO / "config" / "pose2sim_demo.yaml"))
     ap.add_argument("--skeleton-config", default=str(REPO / "config" / "pose2sim_skeleton.yaml"),
                     help="estimator tunables YAML (default: the Pose2Sim recordings' config/pose2sim_skeleton.yaml)")
+    ap.add_argument("--edges", action="store_true",
+                    help="fuse the edge features (ALGORITHMS.md §2) into the body fit, as `artrack track --edges`")
+    ap.add_argument("--edge-config", default=None, help="edge tracker tunables (default config/edge_features.yaml)")
     ap.add_argument("--body-model", default=str(REPO / "config" / "pose2sim_body_model.yaml"),
                     help="body model YAML (default: the Pose2Sim recordings' config/pose2sim_body_model.yaml)")
     ap.add_argument("--pred", type=Path, default=None, help="check this tracking output instead (bag or track folder)")
@@ -223,7 +226,8 @@ def run(args) -> int:
         cameras, frames, stamps, fps_clip, decode_ms = load_clip(args.demo, args.scale, args.max_frames or None)
     names = [c.name for c in cameras]
     body = load_body_model(args.body_model)
-    config = load_pipeline_config(fps=fps_clip, blob_config=args.blob_config, skeleton_config=args.skeleton_config)
+    config = load_pipeline_config(fps=fps_clip, blob_config=args.blob_config, skeleton_config=args.skeleton_config,
+                                  edges=args.edges, edge_config=args.edge_config)
     t0 = time.perf_counter()
     refs = reference_foreground(frames)
     ref_ms = (time.perf_counter() - t0) * 1e3 / len(frames)

@@ -106,7 +106,7 @@ def test_stage_learns_its_colours_again_when_a_new_track_starts(scene):
     theta = pose_at("default", 0.8, body)
     img = renderer.render(theta, noise_sigma=2.0)[0]
     T = body.forward_kinematics(theta)
-    stage = EdgeStage(cams[0], body)
+    stage = EdgeStage(cams[0], body, EdgeTrackerConfig(warmup_frames=0))
     stage.step(img, T, STATUS_TRACKING)
     first = stage.tracker.appearance
     stage.step(img, T, STATUS_TRACKING)
@@ -119,6 +119,30 @@ def test_stage_learns_its_colours_again_when_a_new_track_starts(scene):
     stage.relearn()
     stage.step(img, T)
     assert stage.tracker.appearance is not None and stage.tracker.appearance is not second
+
+
+def test_stage_waits_out_a_new_tracks_warm_up(scene):
+    """warmup_frames = 3: the first three TRACKING references of a track give no statistics and
+    learn no colours; the fourth learns them there and is measured. A reference of a body not
+    TRACKING gives none, and the next track waits again; after relearn() (a trusted pose) the
+    next reference is used at once."""
+    body, cams, renderer = scene
+    theta = pose_at("default", 0.8, body)
+    img = renderer.render(theta, noise_sigma=2.0)[0]
+    T = body.forward_kinematics(theta)
+    stage = EdgeStage(cams[0], body, EdgeTrackerConfig(warmup_frames=3))
+    for _ in range(3):
+        assert stage.step(img, T, STATUS_TRACKING) is None
+        assert stage.tracker.appearance is None
+    stats = stage.step(img, T, STATUS_TRACKING)
+    assert stats is not None and stats.measured.any() and stage.tracker.appearance is not None
+    assert stage.step(img, T, STATUS_LOST) is None and stage.tracker.appearance is None
+    assert [stage.step(img, T, STATUS_TRACKING) is None for _ in range(4)] == [True, True, True, False]
+    stage.step(img, T, STATUS_LOST)
+    stage.relearn()
+    assert stage.step(img, T, STATUS_TRACKING) is not None and stage.tracker.appearance is not None
+    with pytest.raises(ValueError, match="warmup_frames"):
+        EdgeTrackerConfig(warmup_frames=-1)
 
 
 def test_single_view_stage_learns_colours_with_unseen_links(scene):

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from conftest import NODE_BIN, REPO, run_artrack
 
 from artrack.bags import open_bag
@@ -101,15 +102,30 @@ def test_recorded_bag_readable_by_mcap(graph_run):
 
 
 @pytest.fixture(scope="module")
-def graph_run_edges(tmp_path_factory, env, small_scene) -> Path:
-    return _launch(tmp_path_factory.mktemp("graph_edges"), small_scene, env, "edges=true", timeout_s=300)
+def edge_config(tmp_path_factory) -> Path:
+    """config/edge_features.yaml with a 5-frame warm-up: the small scene tracks ~20 frames, fewer
+    than the default warm-up (30), so with it the edges would never be used."""
+    from artrack.config import read_yaml
+
+    data = read_yaml(REPO / "config" / "edge_features.yaml")
+    data["edge_tracker"]["warmup_frames"] = 5
+    path = tmp_path_factory.mktemp("edge_config") / "edge_features.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
 
 
-def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small_scene, env, tmp_path):
+@pytest.fixture(scope="module")
+def graph_run_edges(tmp_path_factory, env, small_scene, edge_config) -> Path:
+    return _launch(tmp_path_factory.mktemp("graph_edges"), small_scene, env, "edges=true",
+                   f"edge_config={edge_config}", timeout_s=300)
+
+
+def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small_scene, env, tmp_path, edge_config):
     """edge_features nodes (one per camera) measure about the prediction; the skeleton fuses their
     statistics with the blobs: the same joints as `artrack track --edges`, and different from
-    blobs alone (the edges are really used)."""
-    run_artrack(env, "track", str(small_scene), "--edges", "--out", str(tmp_path / "offline"), "--quiet")
+    blobs alone (the edges are really used, after their warm-up)."""
+    run_artrack(env, "track", str(small_scene), "--edges", "--edge-config", str(edge_config),
+                "--out", str(tmp_path / "offline"), "--quiet")
     run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "blobs"), "--quiet")
     live = _bodies(graph_run_edges)
     offline = _bodies(tmp_path / "offline" / "track")

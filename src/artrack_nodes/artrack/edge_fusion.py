@@ -92,10 +92,18 @@ def combine(stats: Sequence[LinkEdgeStatistics]) -> LinkEdgeStatistics | None:
 
 class EdgeStage:
     """One camera's edge statistics about the predicted pose (the offline form of the
-    ``edge_features`` node; module docstring). The edge-polarity colours are learnt on the first
-    frame it is given, at that frame's reference pose (:meth:`EdgeTracker.learn_appearance`), and
-    learnt again at the first reference after :meth:`relearn` or after the reference's ``status``
-    became TRACKING from another status (the skeleton was (re-)initialised: a new track)."""
+    ``edge_features`` node; module docstring).
+
+    Warm-up (``warmup_frames`` > 0): a new track (the reference's ``status`` became TRACKING) is
+    used only from its ``warmup_frames`` + 1-th reference on, and references of a body not
+    TRACKING not at all; :meth:`step` returns None for them (no statistics). The
+    start-up pose is often wrong for the first second (a hand label on the wrong skin, the legs
+    swapped), and edges measured from it would hold it there: the appearance (the edge-polarity
+    colours, :meth:`EdgeTracker.learn_appearance`) learnt at a wrong pose rejects the right edges
+    and the search starts far from them. So the appearance is learnt at the first reference after
+    the warm-up, when the blobs have pulled the body right, and again after the next new track.
+    :meth:`relearn` marks the next reference as trusted (the benches' correct start): it is
+    learnt there, without warm-up. References without a status (None) are always used."""
 
     def __init__(self, camera: Camera, body: BodyModel, config: EdgeTrackerConfig | None = None):
         self.camera = camera
@@ -103,22 +111,39 @@ class EdgeStage:
         self.n_links = len(body.links)
         self.timings_ms: dict[str, float] = {}
         self.status: int | None = None  # of the last reference given
+        self.tracked_frames = 0  # consecutive TRACKING references given in this track
+        self._trusted = False  # relearn() was called: the next reference needs no warm-up
 
     def relearn(self) -> None:
-        """Forget the appearance: it is learnt again at the next reference (a new, trusted pose)."""
+        """Forget the appearance: it is learnt again at the next reference (a new, trusted pose:
+        no warm-up)."""
         self.tracker.appearance = None
+        self._trusted = True
 
-    def step(self, image_bgr: np.ndarray, reference: np.ndarray, status: int | None = None) -> LinkEdgeStatistics:
+    def step(self, image_bgr: np.ndarray, reference: np.ndarray,
+             status: int | None = None) -> LinkEdgeStatistics | None:
         """Statistics of one image about ``reference`` (L, 4, 4) world_from_link (module docstring);
-        ``status`` of the body the reference comes from (TrackedBody status, None: not known)."""
+        ``status`` of the body the reference comes from (TrackedBody status, None: not known).
+        None during a new track's warm-up (class docstring)."""
         cam, tr = self.camera, self.tracker
         E = np.asarray(reference, dtype=float)
         if E.shape != (self.n_links, 4, 4):
             raise ValueError(f"edge stage '{cam.name}': reference must be ({self.n_links}, 4, 4), got {E.shape}")
         if status is not None:
-            if status == STATUS_TRACKING and self.status is not None and self.status != STATUS_TRACKING:
-                self.relearn()
+            if status != STATUS_TRACKING:
+                self.tracked_frames = 0
+            elif self._trusted:
+                self.tracked_frames = tr.config.warmup_frames + 1
+            elif self.status is not None and self.status != STATUS_TRACKING:  # a new track
+                tr.appearance = None
+                self.tracked_frames = 1
+            else:
+                self.tracked_frames += 1
             self.status = int(status)
+            if tr.config.warmup_frames and self.tracked_frames <= tr.config.warmup_frames:
+                tr.appearance = None
+                return None
+        self._trusted = False
         if tr.config.polarity and tr.appearance is None:
             tr.learn_appearance({cam.name: image_bgr}, E)
         timings = dict.fromkeys(STAGES, 0.0)

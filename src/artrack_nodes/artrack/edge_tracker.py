@@ -91,6 +91,7 @@ class EdgeTrackerConfig:
     learn_offset: bool = True
     reference_width_px: float = 320.0
     eps: float = 1e-9
+    warmup_frames: int = 30
 
     def __post_init__(self) -> None:
         if self.spacing_px <= 0 or self.search_px < 2.0 or self.c_robust <= 0:
@@ -101,6 +102,8 @@ class EdgeTrackerConfig:
             raise ValueError("EdgeTrackerConfig: need iterations >= 1 and robust_iterations >= 0")
         if self.polarity_side_px <= 0 or self.appearance_margin < 0:
             raise ValueError("EdgeTrackerConfig: need polarity_side_px > 0 and appearance_margin >= 0")
+        if self.warmup_frames < 0:
+            raise ValueError("EdgeTrackerConfig: need warmup_frames >= 0")
         if self.reference_width_px < 0:
             raise ValueError("EdgeTrackerConfig: need reference_width_px >= 0 (0: no resolution scaling)")
         if self.select not in ("nearest", "strongest"):
