@@ -67,7 +67,8 @@ Kinds
     springs then pull each link to the fit's rotation instead of its extrapolated
     previous one, and the fit follows its own track from frame to frame (started from
     its last result, not from the solver's pose), so that a heading the solver lets
-    drift does not carry the measurement with it.
+    drift does not carry the measurement with it. With edges on, the edge statistics
+    enter that fit as soft link constraints, as in the baseline (ALGORITHMS.md §2 "Fusion").
     ``predict`` runs the filters forward and solves the constraints for the
     predicted goals; its blobs carry the prediction covariance from ``P_prior``.
 
@@ -1224,8 +1225,9 @@ class _Estimator:
     def update(self, stamp_ns: int, blobs_by_camera: Mapping[str, Sequence[Blob2D]], edges=None) -> BodyEstimate:
         """Estimate at stamp_ns from the 2-D blobs of all cameras ({camera name: [Blob2D]}) and,
         optionally, the combined edge statistics of this frame
-        (:class:`artrack.edge_fusion.LinkEdgeStatistics`; used by the baseline fit as soft
-        constraints on the links, ALGORITHMS.md §2 "Fusion"; the Kalman estimators ignore them)."""
+        (:class:`artrack.edge_fusion.LinkEdgeStatistics`; soft constraints on the links,
+        ALGORITHMS.md §2 "Fusion", in the baseline's body fit and in the kinematic skeleton's
+        orientation fit, ``kinematic.orientation_from_fit``; the dynamic estimator ignores them)."""
         stamp_ns = int(stamp_ns)
         self._edges = edges
         self.reacquired = []
@@ -2030,6 +2032,7 @@ class KinematicEstimator(_Estimator):
             theta0[0:3] = self.link_kf.x_prior[0, :3]
         if own_track and self._fit_theta is not None:
             theta0 = previous = self._fit_theta
+        edges = getattr(self, "_edges", None) if own_track else None
         theta, _, _ = fit_pose(
             self.body,
             theta0,
@@ -2040,6 +2043,7 @@ class KinematicEstimator(_Estimator):
             f.previous_sigma_rad,
             f.max_nfev,
             f.robust_scale,
+            link_goals=LinkGoals.from_edges(edges, f.edge_sigma_px, f.edge_min_found) if edges is not None else None,
             tolerance=f.tolerance,
         )
         if own_track:
