@@ -1102,8 +1102,9 @@ def test_kinematic_takes_the_edges_into_its_orientation_fit(body, cameras):
         for k in range(30):
             theta = pose_at("default", 1.0 + k / FPS, body)
             edges = None
-            if use_edges and k > 0:
+            if k > 0:  # the loop's cycle: the prediction for this frame (the edges' reference)
                 ref = link_poses(est.predict(stamp(k)))
+            if use_edges and k > 0:
                 xi = log_se3(np.einsum("lij,ljk->lik", inverse_se3(ref), body.forward_kinematics(theta)))
                 info = np.tile(np.eye(6) * 1e4, (L, 1, 1))
                 edges = LinkEdgeStatistics(ref, info, np.einsum("lij,lj->li", info, xi), np.full(L, 50), ("all",))
