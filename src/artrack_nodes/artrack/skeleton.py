@@ -1135,6 +1135,13 @@ class _Estimator:
             i = int(kin.parent[i])
         return i, length
 
+    def _edge_goals(self) -> LinkGoals | None:
+        """This frame's edge statistics (given to :meth:`update`) as soft link goals for a body fit
+        (``fit.edge_sigma_px``, ``fit.edge_min_found``); None without edges."""
+        edges = getattr(self, "_edges", None)
+        f = self.cfg.fit
+        return LinkGoals.from_edges(edges, f.edge_sigma_px, f.edge_min_found) if edges is not None else None
+
     def _gate_reach(self, obs: dict[str, Blob3D]) -> None:
         """Drop (in place) the 3-D blobs of ``tracking.reacquire_labels`` seen in two or more views
         that lie farther than ``reach_gate_margin`` times the part's reach from its shoulder in the
@@ -1760,8 +1767,7 @@ class BaselineEstimator(_Estimator):
         targets = self._blob_targets(obs)
         axis = self._axis_targets(self.poses[1]) if targets else []
         targets += axis
-        edges = getattr(self, "_edges", None)
-        goals = LinkGoals.from_edges(edges, f.edge_sigma_px, f.edge_min_found) if edges is not None else None
+        goals = self._edge_goals()
         if not targets and (goals is None or not len(goals.links)):
             # Nothing observed: the pose coasts (a fit to the priors alone leaves the root free to wander).
             self._set_pose(self.theta, self.cov_theta, self.poses, dt)
@@ -2032,7 +2038,6 @@ class KinematicEstimator(_Estimator):
             theta0[0:3] = self.link_kf.x_prior[0, :3]
         if own_track and self._fit_theta is not None:
             theta0 = previous = self._fit_theta
-        edges = getattr(self, "_edges", None) if own_track else None
         theta, _, _ = fit_pose(
             self.body,
             theta0,
@@ -2043,7 +2048,7 @@ class KinematicEstimator(_Estimator):
             f.previous_sigma_rad,
             f.max_nfev,
             f.robust_scale,
-            link_goals=LinkGoals.from_edges(edges, f.edge_sigma_px, f.edge_min_found) if edges is not None else None,
+            link_goals=self._edge_goals() if own_track else None,
             tolerance=f.tolerance,
         )
         if own_track:
