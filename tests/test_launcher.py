@@ -41,6 +41,21 @@ def test_disabled_node_is_not_started_and_unknown_variable_is_refused():
         parse_overrides(["estimator"])
 
 
+def test_player_waits_for_every_node_the_graph_starts():
+    """``${graph_nodes}``: the bag player's wait_for_nodes names every node started, whichever are
+    enabled (a loose_limbed node that started late once missed the first frames of a lockstep replay
+    and changed its result), and the built-in name cannot be redefined."""
+    graph = read_yaml(GRAPH)
+    specs = expand_graph(graph, "graph.yaml", {"cameras": ["a", "b"], "loose_limbed": True, "record": False})
+    player = next(s for s in specs if s.name == "bag_player")
+    assert player.parameters["wait_for_nodes"] == [s.name for s in specs]
+    assert "loose_limbed" in player.parameters["wait_for_nodes"]
+    assert "bag_recorder" not in player.parameters["wait_for_nodes"]
+    graph["variables"]["graph_nodes"] = []
+    with pytest.raises(InputError, match="'graph_nodes' is built in"):
+        expand_graph(graph, "graph.yaml")
+
+
 def test_ros2_launch_file_compiles_and_reads_the_same_graph():
     launch_file = REPO / "src" / "artrack_nodes" / "launch" / "tracking.launch.py"
     py_compile.compile(str(launch_file), doraise=True)  # launch_ros itself is not installable here

@@ -54,9 +54,16 @@ class NodeSpec:
     until_exit: bool = False
 
 
+#: built-in graph variable: the names of every node the graph starts (e.g. the bag player's wait_for_nodes)
+GRAPH_NODES = "graph_nodes"
+
+
 def expand_graph(graph: dict[str, Any], where: str, overrides: dict[str, Any] | None = None) -> list[NodeSpec]:
-    """Node specs from a graph mapping; ``${name}`` strings are replaced from ``variables``/overrides."""
+    """Node specs from a graph mapping; ``${name}`` strings are replaced from ``variables``/overrides,
+    and ``${graph_nodes}`` by the names of all the nodes the graph starts."""
     variables = dict(graph.get("variables", {}) or {})
+    if GRAPH_NODES in variables:
+        raise InputError(f"{where}: variable '{GRAPH_NODES}' is built in (the names of the graph's nodes)")
     unknown = sorted(set(overrides or {}) - set(variables))
     if unknown:
         raise InputError(f"{where}: no graph variable '{unknown[0]}' (variables: {', '.join(variables)})")
@@ -76,7 +83,7 @@ def expand_graph(graph: dict[str, Any], where: str, overrides: dict[str, Any] | 
             return {k: subst(v, camera) for k, v in value.items()}
         return value
 
-    specs: list[NodeSpec] = []
+    started: list[tuple[str, dict, str | None]] = []  # (node name, graph entry, camera)
     for i, entry in enumerate(graph.get("nodes", []) or []):
         if not isinstance(entry, dict) or "executable" not in entry:
             raise InputError(f"{where}: nodes[{i}] has no field 'executable'")
@@ -84,17 +91,12 @@ def expand_graph(graph: dict[str, Any], where: str, overrides: dict[str, Any] | 
             continue
         per_camera = bool(entry.get("per_camera", False))
         for camera in cameras if per_camera else [None]:
-            name = subst(entry.get("name", entry["executable"]), camera)
-            specs.append(
-                NodeSpec(
-                    name=name,
-                    executable=entry["executable"],
-                    parameters=subst(dict(entry.get("parameters", {}) or {}), camera),
-                    restarts=int(entry.get("restarts", 0)),
-                    until_exit=bool(entry.get("until_exit", False)),
-                )
-            )
-    return specs
+            started.append((subst(entry.get("name", entry["executable"]), camera), entry, camera))
+    variables[GRAPH_NODES] = [name for name, _, _ in started]
+    return [NodeSpec(name=name, executable=entry["executable"],
+                     parameters=subst(dict(entry.get("parameters", {}) or {}), camera),
+                     restarts=int(entry.get("restarts", 0)), until_exit=bool(entry.get("until_exit", False)))
+            for name, entry, camera in started]
 
 
 class Launcher:

@@ -45,6 +45,9 @@ PARAMS = [
     ("extra_topics", [""], "further per-frame topics to replay with each frame's images, matched by stamp "
                            "(e.g. /cameras/rgbd/points, /artrack/stick); playing starts once each has a "
                            "subscriber (at most start_timeout_s); empty: none"),
+    ("wait_for_nodes", [""], "node names (without namespace) that must be in the ROS graph before playing, e.g. "
+                             "every node of the launched graph (config/graph.yaml passes ${graph_nodes}): a node "
+                             "that starts late would miss the first frames (at most start_timeout_s); empty: none"),
     ("linger_for", [""], "TrackedBody topics of slower estimators (e.g. /artrack/particles/body): after the last "
                          "frame, end as soon as each has published a body for it (at most linger_s); empty: none"),
 ]
@@ -120,7 +123,14 @@ class BagPlayerNode(Node):
         self.bodies_seen.add(ns_from_time(msg.header.stamp))
         self.t_last_body = time.monotonic()
 
+    def _missing_nodes(self) -> list[str]:
+        """The names of ``wait_for_nodes`` not (yet) in the ROS graph, this node's own excepted."""
+        present = set(self.get_node_names())
+        return sorted(n for n in self.p["wait_for_nodes"] if n and n != self.get_name() and n not in present)
+
     def _graph_ready(self) -> bool:
+        if self._missing_nodes():
+            return False
         if self.pubs.subscriber_count() < 1:
             return False
         if any(p.get_subscription_count() < 1 for p in self.extra_pubs):
@@ -149,7 +159,10 @@ class BagPlayerNode(Node):
         if self.state == "wait_graph":
             if self._graph_ready() or now - self.t_state > float(self.p["start_timeout_s"]):
                 if not self._graph_ready():
-                    self.get_logger().warning("graph not complete after start_timeout_s; playing anyway")
+                    missing = self._missing_nodes()
+                    self.get_logger().warning("graph not complete after start_timeout_s"
+                                              + (f" (no node {', '.join(missing)})" if missing else "")
+                                              + "; playing anyway")
                 time.sleep(0.5)  # let late discovery of the remaining endpoints settle
                 self.state = "play" if self._advance() else "linger"
                 self.t_state = time.monotonic()

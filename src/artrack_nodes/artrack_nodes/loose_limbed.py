@@ -8,7 +8,10 @@ frames, shouters + NBP) and publishes /artrack/loose_limbed/body (artrack_msgs/T
 
 With ``lockstep`` (graph: lockstep replay) it answers every complete frame: the estimate, or a body
 with status LOST and NaN joints when it did not infer or found nobody, so that a skeleton waiting
-for its re-seed (skeleton ``reseed_topic`` in lockstep) never waits in vain.
+for its re-seed (skeleton ``reseed_topic`` in lockstep) never waits in vain. It also takes a frame
+only once it has heard the skeleton's body of the frame before (up to ``lockstep_timeout_s``): that
+body's status decides whether to infer, and its message races the next frame's images, so without
+the wait a replay's inferences would depend on the order the messages happen to arrive in.
 
 mode=initialiser: infers at start until its first body and whenever the skeleton's last body has
 status LOST (artrack.loose_limbed_stage.InitialiserPolicy): the first frame after the skeleton
@@ -24,6 +27,7 @@ it has not started, or restarts from it when lost.
 from __future__ import annotations
 
 import sys
+import time
 
 from rclpy.node import Node
 
@@ -56,6 +60,8 @@ PARAMS = [
     ("reliable_images", False, "reliable image QoS (lockstep bag replay) instead of sensor data"),
     ("lockstep", False, "answer every frame (LOST with NaN joints when there is no estimate): a lockstep "
                         "skeleton with reseed_topic waits for it"),
+    ("lockstep_timeout_s", 30.0, "lockstep: take a frame after this long without the skeleton's body of the "
+                                 "frame before (a dead skeleton must not stall this node), s"),
     ("init_iterations", 10, "BP iterations when finding the body from no prior pose"),
     ("track_iterations", 2, "BP iterations per tracked frame (mode=estimator)"),
     ("particles", 100, "belief samples per part and iteration"),
@@ -69,8 +75,9 @@ PARAMS = [
     ("body_id", 0, "id published in TrackedBody.body_id"),
     ("world_frame", "world", "frame_id of the published bodies"),
 ]
-LIMITS = {"min_score": (-1000.0, 0.0), "init_iterations": (1, 100), "track_iterations": (1, 50),
-          "particles": (10, 10000), "background_frames": (1, 1000), "background_stride": (1, 1000)}
+LIMITS = {"lockstep_timeout_s": (0.0, 3600.0), "min_score": (-1000.0, 0.0), "init_iterations": (1, 100),
+          "track_iterations": (1, 50), "particles": (10, 10000), "background_frames": (1, 1000),
+          "background_stride": (1, 1000)}
 RUNTIME: tuple[str, ...] = ()  # all read-only once running
 
 
@@ -86,7 +93,10 @@ class LooseLimbedNode(Node):
         self.body = load_body_model(p["body_model"] or None)
         self.model = load_model(p["model"] or None)
         self.stage: LooseLimbedStage | None = None
-        self.pending: dict[int, dict] = {}
+        self.pending: dict[int, dict] = {}  # frames still missing a camera's image
+        self.complete: dict[int, tuple[float, dict]] = {}  # lockstep: (arrival, images) of frames held back
+        self.last_taken: int | None = None  # stamp of the frame processed last
+        self.skeleton_heard = -1  # stamp of the skeleton's newest body
         f = msgs()
         self.pub = self.create_publisher(f.cls("artrack_msgs/msg/TrackedBody"), OUTPUT_TOPIC, RESULT_QOS)
         self.rig = CameraRigListener(self, self.names, self.on_cameras)
@@ -95,6 +105,8 @@ class LooseLimbedNode(Node):
             self.create_subscription(f.cls("sensor_msgs/msg/Image"), camera_topic(n, "image_raw"),
                                      lambda m, n=n: self.on_image(n, m), qos)
         self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), BODY_TOPIC, self.on_skeleton, RESULT_QOS)
+        if p["lockstep"]:
+            self.create_timer(0.05, self.take_complete)  # lockstep_timeout_s
         self.get_logger().info(f"loose_limbed ({p['mode']}) over {self.names}")
 
     def on_cameras(self, cameras) -> None:
@@ -106,8 +118,10 @@ class LooseLimbedNode(Node):
             min_score=float(p["min_score"])))
 
     def on_skeleton(self, msg) -> None:
+        self.skeleton_heard = max(self.skeleton_heard, ns_from_time(msg.header.stamp))
         if self.policy.skeleton(int(msg.status)):
             self.get_logger().info("skeleton reports LOST: re-initialising")
+        self.take_complete()
 
     def on_image(self, name: str, msg) -> None:
         topic = camera_topic(name, "image_raw")
@@ -121,7 +135,25 @@ class LooseLimbedNode(Node):
         for old in sorted(self.pending)[:-4]:  # keep the newest few incomplete frames
             del self.pending[old]
         if self.stage is not None and len(self.pending.get(stamp, {})) == len(self.names):
-            self.process(stamp, self.pending.pop(stamp))
+            self.complete[stamp] = (time.monotonic(), self.pending.pop(stamp))
+            self.take_complete()
+
+    def take_complete(self) -> None:
+        """Process the complete frames in order; in lockstep each waits for the skeleton's body of the
+        frame processed before it (while the skeleton publishes, at most lockstep_timeout_s)."""
+        while self.complete:
+            stamp = min(self.complete)
+            arrived, images = self.complete[stamp]
+            if (self.p["lockstep"] and self.last_taken is not None and self.skeleton_heard < self.last_taken
+                    and self.count_publishers(BODY_TOPIC) > 0):
+                waited = time.monotonic() - arrived
+                if waited <= float(self.p["lockstep_timeout_s"]):
+                    return
+                self.get_logger().warning(f"frame {stamp}: no skeleton body for frame {self.last_taken} after "
+                                          f"{waited:.1f} s; going on with its last status")
+            del self.complete[stamp]
+            self.last_taken = stamp
+            self.process(stamp, images)
 
     def process(self, stamp: int, images: dict) -> None:
         assert self.stage is not None
