@@ -109,10 +109,11 @@ the rest pose rotated about z is fitted for each candidate, held near that headi
 ``tracking.verify_frames`` frames after any initialisation the
 mirrored hypothesis (heading + π, left <-> right) is fitted too and taken over if
 it explains the labelled blobs much better (knees and elbows bend one way only).
-While tracking, the face check (``tracking.facing_*``, :func:`facing_agreement`)
-turns a body that faces backwards, with every left/right label swapped to match,
-round: the head's skin blob is the face in the views it looks at and only the
-neck behind it, so its sizes tell the facing that the blob positions cannot.
+While tracking, from the first frame on (alongside that verification), the face
+check (``tracking.facing_*``, :func:`facing_agreement`) turns a body that faces
+backwards, with every left/right label swapped to match, round: the head's skin
+blob is the face in the views it looks at and only the neck behind it, so its
+sizes tell the facing that the blob positions cannot.
 A hand lost by its 2-D labels (one that moved faster than its prediction, so the
 gates around the prior found nothing) is re-acquired (``tracking.reacquire_*``,
 :meth:`_Estimator._reacquire`) where the views' unlabelled skin blobs meet within
@@ -867,25 +868,21 @@ def _heading(R_root: np.ndarray) -> float:
     return math.atan2(float(R_root[1, 0]), float(R_root[0, 0]))
 
 
-def facing_agreement(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera],
-                     world_from_link: np.ndarray, min_size_ratio: float = 2.0) -> float | None:
-    """Whether a part's 2-D blob sizes say it faces the way it is posed (the face check of
-    ``tracking.facing_*``): the cosine of the horizontal angle between the link's forward (+x) axis
-    and the direction the sizes point to. ``blobs``: camera -> that part's Blob2D; each view's
-    size at 1 m is its pixel count x the squared distance from the camera centre to the link
-    origin, and the sizes are fitted as ``a + c · u_k`` (u_k: the horizontal unit direction from
+def facing_direction(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera], origin: np.ndarray,
+                     min_size_ratio: float = 2.0) -> np.ndarray | None:
+    """The horizontal way a part faces by its 2-D blob sizes (the face check of ``tracking.facing_*``):
+    a unit (2,) world xy vector. ``blobs``: camera -> that part's Blob2D; each view's size at 1 m is
+    its pixel count x the squared distance from the camera centre to ``origin`` (the link origin,
+    world m), and the sizes are fitted as ``a + c · u_k`` (u_k: the horizontal unit direction from
     the link to camera k, least squares): c is the way the larger blobs lie.
 
     The head's skin-coloured blob is the face in the views it looks at and only the neck in the
     views behind it (the hair covers the rest): about 4x larger at 1 m (synthetic seeds 1, 12:
-    correlation with the cosine of each camera's bearing from the true facing 0.79, 0.85). A body
-    tracked facing backwards, with every left/right label swapped to match, explains the blobs'
-    positions as well as the right one, but not these sizes: about -1 here; a heading off sideways
-    gives about 0. Pixel counts must be real ones (shrinking with the squared distance).
-    world_from_link: (4, 4) the link's pose. None with fewer than three views, views in a line,
-    or the largest size less than ``min_size_ratio`` times the smallest (alike from every side)."""
-    R, origin = world_from_link[:3, :3], world_from_link[:3, 3]
-    forward = R[:2, 0] / max(float(np.linalg.norm(R[:2, 0])), 1e-9)
+    correlation with the cosine of each camera's bearing from the true facing 0.79, 0.85). Pixel
+    counts must be real ones (shrinking with the squared distance). None with fewer than three
+    views, views in a line, or the largest size less than ``min_size_ratio`` times the smallest
+    (alike from every side)."""
+    origin = np.asarray(origin, float)
     size, rows = [], []
     for name, blob in blobs.items():
         to_camera = np.asarray(cameras[name].center, float) - origin
@@ -899,10 +896,24 @@ def facing_agreement(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera],
     A = np.array(rows)
     if np.linalg.matrix_rank(A, tol=1e-3) < 3:
         return None
-    coef = np.linalg.lstsq(A, np.asarray(size) / np.mean(size), rcond=None)[0]
-    c = coef[1:]
+    c = np.linalg.lstsq(A, np.asarray(size) / np.mean(size), rcond=None)[0][1:]
     norm = float(np.linalg.norm(c))
-    return None if norm < 1e-9 else float(forward @ c) / norm
+    return None if norm < 1e-9 else c / norm
+
+
+def facing_agreement(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera],
+                     world_from_link: np.ndarray, min_size_ratio: float = 2.0) -> float | None:
+    """Whether a part's 2-D blob sizes say it faces the way it is posed: the cosine of the
+    horizontal angle between the link's forward (+x) axis and :func:`facing_direction`
+    (``world_from_link``: (4, 4) the link's pose). A body tracked facing backwards, with every
+    left/right label swapped to match, explains the blobs' positions as well as the right one,
+    but not the head's sizes: about -1 there; a heading off sideways gives about 0. None when
+    the sizes say nothing (see :func:`facing_direction`)."""
+    direction = facing_direction(blobs, cameras, world_from_link[:3, 3], min_size_ratio)
+    if direction is None:
+        return None
+    forward = world_from_link[:2, 0] / max(float(np.linalg.norm(world_from_link[:2, 0])), 1e-9)
+    return float(forward @ direction)
 
 
 # =========================================================================== start-up
@@ -1105,6 +1116,7 @@ class _Estimator:
         self.facing_flips: list[int] = []
         #: parts re-acquired from unlabelled skin blobs in the last update (see :meth:`_reacquire`)
         self.reacquired: list[str] = []
+        self._reseeded_at: int | None = None  # stamp of the last re-seed (:meth:`reseed`)
 
     def _arm_reach(self) -> float:
         """Largest head-blob to hand-blob distance of the body model, m (fully stretched
@@ -1265,6 +1277,12 @@ class _Estimator:
             if self.theta is None:
                 self.stamp_ns = stamp_ns
                 return BodyEstimate.empty(self.body.joint_names, stamp_ns, STATUS_INITIALIZING)
+        if self._reseeded_at == stamp_ns and not obs:
+            # Re-seeded for this very frame, whose blobs are the 2-D trackers' start-up classes (they had
+            # no priors yet): the other estimator's body is this frame's estimate. Fitting to those
+            # blobs (skin taken for hands, nothing on the trunk) bends it away before the priors come.
+            self.last_observed = obs
+            return self._estimate(stamp_ns)
         if self.status == STATUS_TRACKING:
             self._gate_reach(obs)
             self.reacquired = self._reacquire(blobs_by_camera, obs)
@@ -1282,7 +1300,7 @@ class _Estimator:
         self.last_observed = obs
         if self._verify_left > 0 and len(obs) >= cfg.min_blobs:
             self._verify_facing(stamp_ns, obs)
-        elif self.status == STATUS_TRACKING and cfg.facing_check_frames > 0:
+        if self.status == STATUS_TRACKING and cfg.facing_check_frames > 0:  # from the first frame, beside it
             self._check_facing(stamp_ns, blobs_by_camera, obs)
         return self._estimate(stamp_ns)
 
@@ -1303,6 +1321,7 @@ class _Estimator:
         joints = self.check_reseed_joints(joints)
         if self.theta is not None and self.status != STATUS_LOST:
             return False
+        self._reseeded_at = int(stamp_ns)
         info = np.eye(3) / sigma_m**2
         targets = [PointTarget(int(k), pt, y, info)
                    for k, pt, y in zip(self.body.joint_links, self.body.joint_points, joints, strict=True)]
@@ -1322,6 +1341,7 @@ class _Estimator:
         self._cost_current = self._cost_flipped = 0.0
         self._flip_theta: np.ndarray | None = None
         self._facing: list[float] = []  # the face check's cosines, newest last (a new track starts afresh)
+        self._facing_ways: list[np.ndarray] = []  # ... and the facing directions they came from
 
     def _mirrored(self, obs: Mapping[str, Blob3D]) -> dict[str, Blob3D]:
         """The blobs with their left and right labels exchanged (l_ <-> r_; others kept)."""
@@ -1337,24 +1357,30 @@ class _Estimator:
         blob at the estimated pose): when the mean of the last ``tracking.facing_check_frames``
         cosines is below ``tracking.facing_flip_cosine``, the body faces backwards with its
         left/right labels swapped to match; it is turned round as in the verification (the rest
-        pose at heading + π fitted to the blobs with their labels exchanged). A heading off
-        sideways (cosine near 0) is left to the fit: turning it round would not help."""
+        pose fitted to the blobs with their labels exchanged), to the heading the sizes point to
+        (the mean of those frames' :func:`facing_direction`; heading + π if they cancel). A
+        heading off sideways (cosine near 0) is left to the fit: turning it round would not help."""
         t = self.cfg.tracking
         link = int(self.kin.blob_links[self.kin.blob_index[t.facing_label]])
         blobs = {name: b for name, bl in blobs_by_camera.items() for b in bl if b.label == t.facing_label}
-        r = facing_agreement(blobs, self.cameras, self.body.forward_kinematics(self.theta)[link],
-                             t.facing_min_size_ratio)
-        if r is None:
+        pose = self.body.forward_kinematics(self.theta)[link]
+        direction = facing_direction(blobs, self.cameras, pose[:3, 3], t.facing_min_size_ratio)
+        if direction is None:
             return
-        self._facing = (self._facing + [r])[-t.facing_check_frames:]
+        forward = pose[:2, 0] / max(float(np.linalg.norm(pose[:2, 0])), 1e-9)
+        self._facing = (self._facing + [float(forward @ direction)])[-t.facing_check_frames:]
+        self._facing_ways = (self._facing_ways + [direction])[-t.facing_check_frames:]
         if len(self._facing) < t.facing_check_frames or np.mean(self._facing) >= t.facing_flip_cosine:
             return
         mirrored = self._mirrored(obs)
-        yaw = _heading(exp_so3(self.theta[3:6])) + math.pi
+        way = np.mean(self._facing_ways, axis=0)
+        yaw = (math.atan2(way[1], way[0]) if np.linalg.norm(way) > 0.1
+               else _heading(exp_so3(self.theta[3:6])) + math.pi)
         theta_f, _ = self._init_fit(self._blob_targets(mirrored), self._rest_at(self.theta[0:3], yaw))
         self._initialise(stamp_ns, theta_f, mirrored)
         self.last_observed = mirrored
-        self._facing = []
+        self._facing, self._facing_ways = [], []
+        self._verify_left = 0  # the face settled it; the verification's sums were of the other heading
         self.facing_flips.append(int(stamp_ns))
 
     def _verify_facing(self, stamp_ns: int, obs: Mapping[str, Blob3D]) -> None:
@@ -1395,6 +1421,7 @@ class _Estimator:
             self._initialise(stamp_ns, theta_f, mirrored)
             self.last_observed = mirrored
             self._verify_left = 0
+            self._facing, self._facing_ways = [], []  # the face check's cosines were of the other heading
 
     def predict(self, stamp_ns: int) -> BodyEstimate:
         """Prediction for stamp_ns (normally the next frame); ``.blobs`` feed feedback projection.
