@@ -61,7 +61,7 @@ PARAMS = [
     ("lockstep", False, "answer every frame (LOST with NaN joints when there is no estimate): a lockstep "
                         "skeleton with reseed_topic waits for it"),
     ("lockstep_timeout_s", 30.0, "lockstep: take a frame after this long without the skeleton's body of the "
-                                 "frame before (a dead skeleton must not stall this node), s"),
+                                 "frame before (a dead skeleton must not stall this node), s; 0 = wait for ever"),
     ("init_iterations", 10, "BP iterations when finding the body from no prior pose"),
     ("track_iterations", 2, "BP iterations per tracked frame (mode=estimator)"),
     ("particles", 100, "belief samples per part and iteration"),
@@ -146,8 +146,8 @@ class LooseLimbedNode(Node):
             arrived, images = self.complete[stamp]
             if (self.p["lockstep"] and self.last_taken is not None and self.skeleton_heard < self.last_taken
                     and self.count_publishers(BODY_TOPIC) > 0):
-                waited = time.monotonic() - arrived
-                if waited <= float(self.p["lockstep_timeout_s"]):
+                waited, limit = time.monotonic() - arrived, float(self.p["lockstep_timeout_s"])
+                if limit == 0 or waited <= limit:
                     return
                 self.get_logger().warning(f"frame {stamp}: no skeleton body for frame {self.last_taken} after "
                                           f"{waited:.1f} s; going on with its last status")
