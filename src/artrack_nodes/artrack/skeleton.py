@@ -868,6 +868,12 @@ def _heading(R_root: np.ndarray) -> float:
     return math.atan2(float(R_root[1, 0]), float(R_root[0, 0]))
 
 
+def _forward_xy(world_from_link: np.ndarray) -> np.ndarray:
+    """The horizontal unit direction (2,) of a link's forward (+x) axis, world xy."""
+    x = world_from_link[:2, 0]
+    return x / max(float(np.linalg.norm(x)), 1e-9)
+
+
 def facing_direction(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera], origin: np.ndarray,
                      min_size_ratio: float = 2.0) -> np.ndarray | None:
     """The horizontal way a part faces by its 2-D blob sizes (the face check of ``tracking.facing_*``):
@@ -910,10 +916,7 @@ def facing_agreement(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera],
     but not the head's sizes: about -1 there; a heading off sideways gives about 0. None when
     the sizes say nothing (see :func:`facing_direction`)."""
     direction = facing_direction(blobs, cameras, world_from_link[:3, 3], min_size_ratio)
-    if direction is None:
-        return None
-    forward = world_from_link[:2, 0] / max(float(np.linalg.norm(world_from_link[:2, 0])), 1e-9)
-    return float(forward @ direction)
+    return None if direction is None else float(_forward_xy(world_from_link) @ direction)
 
 
 # =========================================================================== start-up
@@ -1117,6 +1120,7 @@ class _Estimator:
         #: parts re-acquired from unlabelled skin blobs in the last update (see :meth:`_reacquire`)
         self.reacquired: list[str] = []
         self._reseeded_at: int | None = None  # stamp of the last re-seed (:meth:`reseed`)
+        self._edges = None  # the edge statistics given to the current update (:meth:`_edge_goals`)
 
     def _arm_reach(self) -> float:
         """Largest head-blob to hand-blob distance of the body model, m (fully stretched
@@ -1150,9 +1154,8 @@ class _Estimator:
     def _edge_goals(self) -> LinkGoals | None:
         """This frame's edge statistics (given to :meth:`update`) as soft link goals for a body fit
         (``fit.edge_sigma_px``, ``fit.edge_min_found``); None without edges."""
-        edges = getattr(self, "_edges", None)
         f = self.cfg.fit
-        return LinkGoals.from_edges(edges, f.edge_sigma_px, f.edge_min_found) if edges is not None else None
+        return None if self._edges is None else LinkGoals.from_edges(self._edges, f.edge_sigma_px, f.edge_min_found)
 
     def _gate_reach(self, obs: dict[str, Blob3D]) -> None:
         """Drop (in place) the 3-D blobs of ``tracking.reacquire_labels`` seen in two or more views
@@ -1367,8 +1370,7 @@ class _Estimator:
         direction = facing_direction(blobs, self.cameras, pose[:3, 3], t.facing_min_size_ratio)
         if direction is None:
             return
-        forward = pose[:2, 0] / max(float(np.linalg.norm(pose[:2, 0])), 1e-9)
-        self._facing = (self._facing + [float(forward @ direction)])[-t.facing_check_frames:]
+        self._facing = (self._facing + [float(_forward_xy(pose) @ direction)])[-t.facing_check_frames:]
         self._facing_ways = (self._facing_ways + [direction])[-t.facing_check_frames:]
         if len(self._facing) < t.facing_check_frames or np.mean(self._facing) >= t.facing_flip_cosine:
             return
