@@ -962,9 +962,10 @@ def test_facing_agreement_reads_the_facing_from_the_head_blob_sizes(body, camera
 def test_a_body_tracked_facing_backwards_is_turned_round(body, cameras):
     """tracking.facing_*: started facing the wrong way with every l_/r_ label swapped to match
     (the blob positions fit either way round), the body is turned round once the head blob's
-    sizes have disagreed with its facing for facing_check_frames frames, also while the start-up
-    verification runs; the 2-D labels then follow (as the projected priors make them) and the pose
-    is right. With the check off it stays backwards."""
+    sizes have disagreed with its facing for facing_check_frames frames (for facing_quick_frames
+    when they disagree as clearly as here), also while the start-up verification runs; the 2-D
+    labels then follow (as the projected priors make them) and the pose is right. With the check
+    off it stays backwards."""
     theta = _test_pose(body)
     truth = body.joint_positions(theta)
     swap = {lab: ("r_" + lab[2:] if lab[:2] == "l_" else "l_" + lab[2:]) if lab[:2] in ("l_", "r_") else lab
@@ -980,15 +981,18 @@ def test_a_body_tracked_facing_backwards_is_turned_round(body, cameras):
 
     # the check also runs from the first tracked frame while the start-up verification does (verify 20;
     # here one that never turns the body itself, flip_cost_ratio 0)
-    for frames, verify in ((15, 0), (15, 20), (0, 0)):
+    for frames, quick, verify in ((15, 0, 0), (15, 0, 20), (15, 5, 0), (15, 5, 20), (0, 5, 0)):
         est = make_estimator("baseline", body, cameras, {"tracking": {
-            "verify_frames": verify, "flip_cost_ratio": 0.0, "facing_check_frames": frames}})
+            "verify_frames": verify, "flip_cost_ratio": 0.0, "facing_check_frames": frames,
+            "facing_quick_frames": quick}})
         e = est.update(stamp(0), swapped)
         assert heading_error(e) > 150  # backwards, every side swapped
         for k in range(1, 21):
             e = est.update(stamp(k), right if est.facing_flips else swapped)
         if frames:
-            assert len(est.facing_flips) == 1 and est.facing_flips[0] <= stamp(16), (verify, est.facing_flips)
+            assert len(est.facing_flips) == 1, (quick, verify, est.facing_flips)
+            # the full window of 15 frames, or the quick one of 5 (the first cosine comes with frame 0)
+            assert stamp((quick or frames) - 1) <= est.facing_flips[0] <= stamp(quick or frames), (quick, verify)
             assert heading_error(e) < 10
             assert np.linalg.norm(e.joints - truth, axis=1).mean() < 0.03
         else:

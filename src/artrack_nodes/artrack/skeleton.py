@@ -235,6 +235,10 @@ class TrackingConfig:
     #: ... a mean cosine below this between the estimated facing and the way the ``facing_label``
     #: blob's sizes point turns the body round (heading + π, left <-> right)
     facing_flip_cosine: float = -0.7
+    #: ... or, sooner, a mean below ``facing_quick_cosine`` over the last this many frames (0 = only the
+    #: full window): a body started facing backwards is turned after a few frames, not fifteen
+    facing_quick_frames: int = 5
+    facing_quick_cosine: float = -0.85
     #: ... counted only in frames whose largest size is at least this many times the smallest
     facing_min_size_ratio: float = 2.0
     #: the blob whose size shows the facing: the head's skin is the face from the front, the neck
@@ -462,6 +466,10 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
     if out.tracking.facing_check_frames < 0:
         raise InputError("skeleton config: field 'tracking.facing_check_frames' must be >= 0 (0 = off)")
+    if out.tracking.facing_quick_frames < 0:
+        raise InputError("skeleton config: field 'tracking.facing_quick_frames' must be >= 0 (0 = off)")
+    if not -1.0 <= out.tracking.facing_quick_cosine <= 1.0:
+        raise InputError("skeleton config: field 'tracking.facing_quick_cosine' must be in [-1, 1]")
     if not -1.0 <= out.tracking.facing_flip_cosine <= 1.0:
         raise InputError("skeleton config: field 'tracking.facing_flip_cosine' must be in [-1, 1]")
     if out.fit.predict_velocity_gain < 0 or not 0.0 < out.fit.predict_velocity_smoothing <= 1.0:
@@ -1358,7 +1366,8 @@ class _Estimator:
     def _check_facing(self, stamp_ns: int, blobs_by_camera, obs: Mapping[str, Blob3D]) -> None:
         """The face check while tracking (:func:`facing_agreement` of the ``tracking.facing_label``
         blob at the estimated pose): when the mean of the last ``tracking.facing_check_frames``
-        cosines is below ``tracking.facing_flip_cosine``, the body faces backwards with its
+        cosines is below ``tracking.facing_flip_cosine`` (or that of the last
+        ``tracking.facing_quick_frames`` below ``tracking.facing_quick_cosine``), the body faces backwards with its
         left/right labels swapped to match; it is turned round as in the verification (the rest
         pose fitted to the blobs with their labels exchanged), to the heading the sizes point to
         (the mean of those frames' :func:`facing_direction`; heading + π if they cancel). A
@@ -1372,10 +1381,15 @@ class _Estimator:
             return
         self._facing = (self._facing + [float(_forward_xy(pose) @ direction)])[-t.facing_check_frames:]
         self._facing_ways = (self._facing_ways + [direction])[-t.facing_check_frames:]
-        if len(self._facing) < t.facing_check_frames or np.mean(self._facing) >= t.facing_flip_cosine:
+        n = len(self._facing)
+        if n >= t.facing_check_frames and np.mean(self._facing) < t.facing_flip_cosine:
+            ways = self._facing_ways
+        elif 0 < t.facing_quick_frames <= n and np.mean(self._facing[-t.facing_quick_frames:]) < t.facing_quick_cosine:
+            ways = self._facing_ways[-t.facing_quick_frames:]
+        else:
             return
         mirrored = self._mirrored(obs)
-        way = np.mean(self._facing_ways, axis=0)
+        way = np.mean(ways, axis=0)
         yaw = (math.atan2(way[1], way[0]) if np.linalg.norm(way) > 0.1
                else _heading(exp_so3(self.theta[3:6])) + math.pi)
         theta_f, _ = self._init_fit(self._blob_targets(mirrored), self._rest_at(self.theta[0:3], yaw))
