@@ -91,7 +91,7 @@ class EdgeTrackerConfig:
     learn_offset: bool = True
     reference_width_px: float = 320.0
     eps: float = 1e-9
-    warmup_frames: int = 30
+    warmup_frames: int = 40
 
     def __post_init__(self) -> None:
         if self.spacing_px <= 0 or self.search_px < 2.0 or self.c_robust <= 0:
