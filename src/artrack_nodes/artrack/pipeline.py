@@ -248,7 +248,7 @@ class ClosedLoopPipeline:
         estimator = self.skeleton.estimator
         joints = estimator.check_reseed_joints(joints)  # before anything is reset
         estimator.reset()
-        estimator.reseed(int(stamp_ns) - 1, joints)
+        estimator.reseed(int(stamp_ns) - 1, joints, limb_sigma_m=0.05)  # known joints: the limbs too
         for stage in self.edge_stages.values():
             stage.relearn()
         self._feed_back(estimator.predict(int(stamp_ns)))

@@ -202,6 +202,8 @@ KINDS = ("baseline", "kinematic", "dynamic")
 #: half length (m) of the lever along the axis link's lateral axis on which the horizontal-axis
 #: cue acts (the cue's sigma in m is this times ``fit.axis_sigma_rad``)
 _AXIS_LEVER_M = 0.15
+#: the output joints a re-seed holds at ``tracking.reseed_limb_sigma_m`` (names end so: l_elbow, ...)
+_LIMB_JOINTS = ("elbow", "wrist", "knee", "ankle")
 #: floor (m, 1 sigma) of the narrower horizontal extent in the ``fit.axis_min_ratio`` test
 _AXIS_FLOOR_M = 0.03
 
@@ -228,6 +230,10 @@ class TrackingConfig:
     #: a LOST estimator re-initialises from its own blobs (False: only ``reseed`` restarts it, e.g. from
     #: the loose_limbed node; the first start still uses the blobs)
     relocalise_from_blobs: bool = True
+    #: a re-seed (:meth:`_Estimator.reseed`) from another estimator's body holds its elbows, wrists,
+    #: knees and ankles only this loosely, m (its trunk and head at the re-seed's sigma): the
+    #: loose-limbed body's limbs are its weakest part, and the rest pose and the blobs do better
+    reseed_limb_sigma_m: float = 1.0
     verify_frames: int = 20
     flip_cost_ratio: float = 0.5
     #: the face check (:func:`facing_agreement`): over this many frames while tracking (0 = off) ...
@@ -466,6 +472,8 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
     if out.tracking.facing_check_frames < 0:
         raise InputError("skeleton config: field 'tracking.facing_check_frames' must be >= 0 (0 = off)")
+    if not out.tracking.reseed_limb_sigma_m > 0:
+        raise InputError("skeleton config: field 'tracking.reseed_limb_sigma_m' must be > 0")
     if out.tracking.facing_quick_frames < 0:
         raise InputError("skeleton config: field 'tracking.facing_quick_frames' must be >= 0 (0 = off)")
     if not -1.0 <= out.tracking.facing_quick_cosine <= 1.0:
@@ -1323,19 +1331,23 @@ class _Estimator:
                              f"got shape {joints.shape}")
         return joints
 
-    def reseed(self, stamp_ns: int, joints: np.ndarray, sigma_m: float = 0.05) -> bool:
+    def reseed(self, stamp_ns: int, joints: np.ndarray, sigma_m: float = 0.05,
+               limb_sigma_m: float | None = None) -> bool:
         """Re-initialise from another estimator's body when this one is lost or has not started
         (ALGORITHMS.md §4: the loose-limbed body "hands its poses to the skeleton"): the body model
         fitted to the 15 output joints (``joints`` (J, 3) world m, order ``body.joint_names``,
-        isotropic ``sigma_m``) from the rest pose at four headings. Returns whether it was taken
-        (False while tracking). InputError for a wrong shape or non-finite joints."""
+        isotropic ``sigma_m``; the elbows, wrists, knees and ankles at ``limb_sigma_m``, by default
+        ``tracking.reseed_limb_sigma_m``) from the rest pose at four headings. Returns whether it
+        was taken (False while tracking). InputError for a wrong shape or non-finite joints."""
         joints = self.check_reseed_joints(joints)
         if self.theta is not None and self.status != STATUS_LOST:
             return False
         self._reseeded_at = int(stamp_ns)
-        info = np.eye(3) / sigma_m**2
-        targets = [PointTarget(int(k), pt, y, info)
-                   for k, pt, y in zip(self.body.joint_links, self.body.joint_points, joints, strict=True)]
+        limb = self.cfg.tracking.reseed_limb_sigma_m if limb_sigma_m is None else float(limb_sigma_m)
+        sigmas = [limb if name.split("_")[-1] in _LIMB_JOINTS else sigma_m for name in self.body.joint_names]
+        targets = [PointTarget(int(k), pt, y, np.eye(3) / sigma**2)
+                   for k, pt, y, sigma in zip(self.body.joint_links, self.body.joint_points, joints, sigmas,
+                                              strict=True)]
         theta = self._fit_four_headings(targets, joints.mean(axis=0),
                                         self.body.joint_positions(self.kin.rest).mean(axis=0))
         # never ahead of frames still to come (update() would take that for time going backwards)
