@@ -67,7 +67,7 @@ import numpy as np  # noqa: E402
 from scipy.signal import savgol_filter  # noqa: E402
 
 from artrack.bags import read_scene, write_scene_bag  # noqa: E402
-from artrack.body_model import load_body_model  # noqa: E402
+from artrack.body_model import limb_joint_indices, load_body_model  # noqa: E402
 from artrack.evaluation import compare_paired  # noqa: E402
 from artrack.motion import pose_at  # noqa: E402
 from artrack.pipeline import ClosedLoopPipeline, load_pipeline_config  # noqa: E402
@@ -168,7 +168,7 @@ def score(name: str, body, stamps: list[int], est: list, tru: list, n_truth: int
     est_a, tru_a = np.asarray(est).reshape(-1, n_j, 3), np.asarray(tru).reshape(-1, n_j, 3)
     err = np.linalg.norm(est_a - tru_a, axis=2)  # (T, J) m
     names = list(body.joint_names)
-    limbs = [i for i, n in enumerate(names) if n.split("_")[-1] in ("elbow", "wrist", "knee", "ankle")]
+    limbs = limb_joint_indices(names)
     head_hands = [names.index(n) for n in ("head", "l_wrist", "r_wrist")]
     nan = float("nan")
     return {

@@ -37,13 +37,12 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from artrack.body_model import load_body_model  # noqa: E402
+from artrack.body_model import limb_joint_indices, load_body_model  # noqa: E402
 from artrack.edge_tracker import STAGES, EdgeTracker, EdgeTrackerConfig  # noqa: E402
 from artrack.evaluation import mpjpe  # noqa: E402
 from artrack.synth import SceneConfig, generate_scene, scene_cameras  # noqa: E402
 
 LOST_MM = 100.0  # a frame with MPJPE above this counts as lost; "held" = time until the first such frame
-LIMB_JOINTS = ("l_elbow", "r_elbow", "l_wrist", "r_wrist", "l_knee", "r_knee", "l_ankle", "r_ankle")
 
 
 def render(size: tuple[int, int], duration: float, seed: int, fps: float):
@@ -85,7 +84,7 @@ def run(body, cams, frames, views: int, config: EdgeTrackerConfig, label: str) -
     # the same estimate in the images it was tracked in: mean joint reprojection error, px
     reprojection = np.mean([np.linalg.norm(c.project(pred.reshape(-1, 3))[0] - c.project(truth.reshape(-1, 3))[0],
                                            axis=1).reshape(len(pred), -1).mean(axis=1) for c in use], axis=0)
-    limb = [body.joint_names.index(n) for n in LIMB_JOINTS]
+    limb = limb_joint_indices(body.joint_names)
     n = len(frames) - 1
     fps_in = 1.0 / max(frames[1].stamp_ns - frames[0].stamp_ns, 1) * 1e9
     last = per_frame[-int(round(fps_in)):]

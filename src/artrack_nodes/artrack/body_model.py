@@ -39,6 +39,14 @@ SHAPE_TYPES = ("capsule", "ellipsoid", "sphere")
 DEFAULT_COLOUR_CLASSES = ("skin", "shirt", "trousers", "shoes", "hair")
 CONFIG_NAME = "body_model.yaml"
 AUTO = "auto"  # a blob centre / radii derived from the link's shapes
+#: the limb joints (elbows, wrists, knees, ankles), by the end of their names (l_elbow, r_elbow, ...)
+LIMB_JOINT_KINDS = ("elbow", "wrist", "knee", "ankle")
+
+
+def limb_joint_indices(joint_names) -> list[int]:
+    """Indices of the limb joints (:data:`LIMB_JOINT_KINDS`) in ``joint_names``: the joints the
+    blob tracker infers and the edges observe (the benches' "limbs"), which a re-seed holds loosely."""
+    return [i for i, name in enumerate(joint_names) if name.split("_")[-1] in LIMB_JOINT_KINDS]
 
 
 @dataclass

@@ -148,7 +148,7 @@ from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.linalg import null_space
 from scipy.optimize import least_squares
 
-from .body_model import BodyModel
+from .body_model import BodyModel, limb_joint_indices
 from .cameras import Camera
 from .constraints import (
     BallJoints,
@@ -202,8 +202,6 @@ KINDS = ("baseline", "kinematic", "dynamic")
 #: half length (m) of the lever along the axis link's lateral axis on which the horizontal-axis
 #: cue acts (the cue's sigma in m is this times ``fit.axis_sigma_rad``)
 _AXIS_LEVER_M = 0.15
-#: the output joints a re-seed holds at ``tracking.reseed_limb_sigma_m`` (names end so: l_elbow, ...)
-_LIMB_JOINTS = ("elbow", "wrist", "knee", "ankle")
 #: floor (m, 1 sigma) of the narrower horizontal extent in the ``fit.axis_min_ratio`` test
 _AXIS_FLOOR_M = 0.03
 
@@ -1344,7 +1342,8 @@ class _Estimator:
             return False
         self._reseeded_at = int(stamp_ns)
         limb = self.cfg.tracking.reseed_limb_sigma_m if limb_sigma_m is None else float(limb_sigma_m)
-        sigmas = [limb if name.split("_")[-1] in _LIMB_JOINTS else sigma_m for name in self.body.joint_names]
+        sigmas = np.full(len(self.body.joint_names), sigma_m)
+        sigmas[limb_joint_indices(self.body.joint_names)] = limb
         targets = [PointTarget(int(k), pt, y, np.eye(3) / sigma**2)
                    for k, pt, y, sigma in zip(self.body.joint_links, self.body.joint_points, joints, sigmas,
                                               strict=True)]
