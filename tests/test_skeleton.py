@@ -153,7 +153,8 @@ def line_runs(body, cameras):
     thetas = [pose_at("line", k / FPS, body) for k in range(n + 1)]
     runs = {}
     configs = {"baseline": {"fit": {"axis_sigma_rad": 0.0, "mirror_groups": [], "predict_velocity_gain": 0.0}},
-               "baseline+axis": {"fit": {"mirror_groups": []}}, "kinematic": None}
+               "baseline+axis": {"fit": {"mirror_groups": []}},
+               "kinematic": {"kinematic": {"warmup_frames": 0}}}  # the filters from the first frame
     for name, config in configs.items():
         kind = name.split("+")[0]
         rng = np.random.default_rng(42)
@@ -885,7 +886,9 @@ def test_kinematic_is_robust_to_one_consistently_mislabelled_blob(body, cameras)
         frames.append(blobs)
     errs = {}
     for scale in (0.0, 3.0):
-        est = make_estimator("kinematic", body, cameras, {"kinematic": {"outlier_fit_scale": scale}})
+        # the filters from the first frame (no warm-up on the raw tracker's estimate): they are tested here
+        config = {"kinematic": {"outlier_fit_scale": scale, "warmup_frames": 0}}
+        est = make_estimator("kinematic", body, cameras, config)
         e_k = []
         for k, (theta, blobs) in enumerate(zip(thetas, frames, strict=True)):
             e = est.update(stamp(k), blobs)
@@ -895,6 +898,41 @@ def test_kinematic_is_robust_to_one_consistently_mislabelled_blob(body, cameras)
         errs[scale] = (float(np.mean(e_k[5:])), max(e_k[5:]))
     assert errs[3.0][0] < 0.035 and errs[3.0][1] < 0.05, errs
     assert errs[0.0][0] > 3.0 * errs[3.0][0], errs
+
+
+def test_kinematic_filters_warm_up_on_the_raw_trackers_estimate(body, cameras):
+    """kinematic.fit_source baseline: the raw tracker runs beside the filters on the same blobs;
+    for the first warmup_frames updates after initialisation its estimate and prediction are the
+    output, then the filters' own (a consistent skeleton, close to the truth, not the raw fit)."""
+    warmup = 5
+    est = make_estimator("kinematic", body, cameras, {"kinematic": {"warmup_frames": warmup}})
+    assert est.raw is not None and est.raw.kind == "baseline"
+    rng = np.random.default_rng(3)
+    thetas = [pose_at("default", 1.0 + k / FPS, body) for k in range(16)]
+    kin = BodyKinematics(body)
+    for k, theta in enumerate(thetas):
+        e = est.update(stamp(k), blobs_2d(body, cameras, theta, rng, 1.0))
+        pred = est.predict(stamp(k + 1))
+        raw_e, raw_pred = est.raw._estimate(stamp(k)), est.raw.predict(stamp(k + 1))
+        assert e.status == est.raw.status == STATUS_TRACKING
+        same = np.array_equal(e.joints, raw_e.joints)
+        # the first warmup frames, the initialising one included
+        assert same == (k < warmup), k
+        assert np.array_equal(pred.joints, raw_pred.joints) == (k < warmup), k
+        if k >= 2:  # (the start-up frames label some blobs only)
+            assert np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean() < 0.025, k
+        if not same:
+            p = np.array([lk.position for lk in e.links])
+            R = np.array([lk.rotation for lk in e.links])
+            assert np.linalg.norm(kin.solver().residual(p, R)) < 1e-9
+    assert est.timings_ms["outlier_fit"] > 0  # the raw tracker's update is counted as the outlier fit
+    # a relocalisation starts the warm-up again; the own fit has no raw tracker
+    est.reset()
+    assert est._filter_frames == 0 and est.raw.theta is None
+    assert make_estimator("kinematic", body, cameras, {"kinematic": {"fit_source": "own"}}).raw is None
+    assert make_estimator("dynamic", body, cameras, None).raw is None
+    with pytest.raises(InputError, match="kinematic.fit_source"):
+        make_estimator("kinematic", body, cameras, {"kinematic": {"fit_source": "bogus"}})
 
 
 def test_kinematic_orientation_from_fit_holds_the_heading_through_swapped_legs(body, cameras):

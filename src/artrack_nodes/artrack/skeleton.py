@@ -69,7 +69,14 @@ Kinds
     its last result, not from the solver's pose), so that a heading the solver lets
     drift does not carry the measurement with it. With edges on, the edge statistics
     enter that fit as soft link constraints, as in the baseline (ALGORITHMS.md §2 "Fusion").
-    ``predict`` runs the filters forward and solves the constraints for the
+    With ``kinematic.fit_source: baseline`` (default) that fit is the raw tracker's: a
+    baseline estimator runs beside the filters on the same 2-D blobs (``self.raw``), so the
+    legs' left/right association, the torso-shape cue, the floor contact, the re-acquired
+    hands and its face check all shape the outlier test and the orientation goals. Track
+    initiation: for the first ``kinematic.warmup_frames`` frames after the filters are
+    (re)initialised, while their velocities and accelerations are still unknown, the raw
+    tracker's estimate and prediction are the output (and so the 2-D priors); then the
+    filters take over. ``predict`` runs the filters forward and solves the constraints for the
     predicted goals; its blobs carry the prediction covariance from ``P_prior``.
 
 ``'dynamic'`` — full dynamics (paper §2.1): links with masses and inertias,
@@ -336,6 +343,8 @@ class KinematicConfig:
     robust_scale: float = 3.0
     outlier_fit_scale: float = 1.5
     orientation_from_fit: bool = True
+    fit_source: str = "baseline"
+    warmup_frames: int = 40
 
 
 @dataclass
@@ -1910,7 +1919,14 @@ class KinematicEstimator(_Estimator):
     kind = "kinematic"
 
     def __init__(self, body, cameras, config=None):
+        #: the raw tracker run beside the filters (``kinematic.fit_source: baseline``), or None
+        self.raw: BaselineEstimator | None = None
         super().__init__(body, cameras, config)
+        source = self.cfg.kinematic.fit_source
+        if source not in ("baseline", "own"):
+            raise InputError(f"skeleton config: field 'kinematic.fit_source' is '{source}', expected baseline or own")
+        if self.kind == "kinematic" and source == "baseline":
+            self.raw = BaselineEstimator(body, cameras, config)
         self.solver = self.kin.solver()
         no_blob = np.ones(self.kin.n_links, bool)
         no_blob[self.kin.blob_links] = False
@@ -1919,6 +1935,45 @@ class KinematicEstimator(_Estimator):
         limbs = no_blob.copy()
         limbs[0] = False
         self.gravity_links = np.flatnonzero(limbs)
+
+    # -- the raw tracker beside the filters (kinematic.fit_source: baseline) -----------
+    def reset(self) -> None:
+        super().reset()
+        self._filter_frames = 0  # filter updates since the last (re)initialisation
+        if self.raw is not None:
+            self.raw.reset()
+
+    def update(self, stamp_ns, blobs_by_camera, edges=None):
+        """As :meth:`_Estimator.update`, with the raw tracker (``self.raw``) updated first on the
+        same blobs: its frame fit is the filters' outlier test and orientation goal, and while
+        the filters warm up (``kinematic.warmup_frames``) its estimate is the output."""
+        if self.raw is None:
+            return super().update(stamp_ns, blobs_by_camera, edges)
+        t0 = time.perf_counter()
+        raw = self.raw.update(stamp_ns, blobs_by_camera, edges)
+        raw_ms = 1e3 * (time.perf_counter() - t0)
+        out = super().update(stamp_ns, blobs_by_camera, edges)
+        # the raw tracker's update (its own triangulation included) is this estimator's outlier fit
+        self.timings_ms["outlier_fit"] = self.timings_ms.get("outlier_fit", 0.0) + raw_ms
+        return raw if self._raw_leads() else out
+
+    def predict(self, stamp_ns):
+        """The filters' prediction, or the raw tracker's while it leads (:meth:`update`), so that the
+        2-D priors come from the same body as the output."""
+        return self.raw.predict(stamp_ns) if self._raw_leads() else super().predict(stamp_ns)
+
+    def reseed(self, stamp_ns, joints, sigma_m=0.05, limb_sigma_m=None):
+        if self.raw is not None:
+            self.raw.reseed(stamp_ns, joints, sigma_m, limb_sigma_m)
+        return super().reseed(stamp_ns, joints, sigma_m, limb_sigma_m)
+
+    def _raw_tracking(self) -> bool:
+        return self.raw is not None and self.raw.theta is not None and self.raw.status == STATUS_TRACKING
+
+    def _raw_leads(self) -> bool:
+        """Whether the raw tracker's estimate is the output: it is tracking, and the filters have
+        had fewer than ``kinematic.warmup_frames`` updates since they were (re)initialised."""
+        return self._raw_tracking() and self._filter_frames < self.cfg.kinematic.warmup_frames
 
     def _new_filter(self, positions: np.ndarray, q: float) -> ConstantAccelerationKF:
         k = self.cfg.kinematic
@@ -1938,6 +1993,7 @@ class KinematicEstimator(_Estimator):
         self.iterations = 0
         self.n_accepted = len(obs)
         self._fit_theta = None  # the outlier fit's own track (orientation_from_fit)
+        self._filter_frames = 0
 
     # -- goals -------------------------------------------------------------------
     def _soft_terms(self, blob_x, blob_P, link_x, link_P, R_goal):
@@ -2011,6 +2067,7 @@ class KinematicEstimator(_Estimator):
         k = self.cfg.kinematic
         dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
         B = len(self.kin.blob_labels)
+        self._filter_frames += 1
         tk = time.perf_counter()
         self.blob_kf.predict(dt)
         self.link_kf.predict(dt)
@@ -2092,19 +2149,22 @@ class KinematicEstimator(_Estimator):
             theta0[0:3] = self.link_kf.x_prior[0, :3]
         if own_track and self._fit_theta is not None:
             theta0 = previous = self._fit_theta
-        theta, _, _ = fit_pose(
-            self.body,
-            theta0,
-            self._blob_targets(obs),
-            self.kin.rest,
-            self.rest_sigma_dof,
-            previous,
-            f.previous_sigma_rad,
-            f.max_nfev,
-            f.robust_scale,
-            link_goals=self._edge_goals() if own_track else None,
-            tolerance=f.tolerance,
-        )
+        if self._raw_tracking():  # (kinematic.fit_source: baseline) the raw tracker's fit of this frame
+            theta = self.raw.theta
+        else:
+            theta, _, _ = fit_pose(
+                self.body,
+                theta0,
+                self._blob_targets(obs),
+                self.kin.rest,
+                self.rest_sigma_dof,
+                previous,
+                f.previous_sigma_rad,
+                f.max_nfev,
+                f.robust_scale,
+                link_goals=self._edge_goals() if own_track else None,
+                tolerance=f.tolerance,
+            )
         if own_track:
             self._fit_theta = theta
         centres = self.body.blob_centres(theta)
