@@ -2136,8 +2136,9 @@ class KinematicEstimator(_Estimator):
         step): the body model fitted robustly (Cauchy loss ``fit.robust_scale``, as the baseline)
         to this frame's 3-D blobs, started from the last pose moved by the root filter's
         prediction (``kinematic.orientation_from_fit``: from the fit's own last result, held
-        near it). Returns (theta_fit or None, {label: whitened squared residual of the blob
-        to that fit})."""
+        near it); with ``kinematic.fit_source: baseline`` the raw tracker's fit of this frame
+        instead, while it tracks. Returns (theta_fit or None, {label: whitened squared residual
+        of the blob to that fit})."""
         f = self.cfg.fit
         own_track = self.kind == "kinematic" and self.cfg.kinematic.orientation_from_fit
         if scale <= 0 or len(obs) < self.cfg.tracking.min_blobs:
