@@ -926,7 +926,7 @@ def test_kinematic_filters_warm_up_on_the_raw_trackers_estimate(body, cameras):
             R = np.array([lk.rotation for lk in e.links])
             assert np.linalg.norm(kin.solver().residual(p, R)) < 1e-9
     assert est.timings_ms["outlier_fit"] > 0  # the raw tracker's update is counted as the outlier fit
-    # a relocalisation starts the warm-up again; the own fit has no raw tracker
+    # a reset starts the warm-up again (so does any re-initialisation, _initialise); the own fit has no raw tracker
     est.reset()
     assert est._filter_frames == 0 and est.raw.theta is None
     assert make_estimator("kinematic", body, cameras, {"kinematic": {"fit_source": "own"}}).raw is None
