@@ -2145,14 +2145,14 @@ class KinematicEstimator(_Estimator):
             if own_track:
                 self._fit_theta = None  # the next fit starts again from the solver's pose
             return None, {}
-        theta0, previous = self.theta.copy(), self.theta
-        if self.kind == "kinematic":
-            theta0[0:3] = self.link_kf.x_prior[0, :3]
-        if own_track and self._fit_theta is not None:
-            theta0 = previous = self._fit_theta
         if self._raw_tracking():  # (kinematic.fit_source: baseline) the raw tracker's fit of this frame
             theta = self.raw.theta
         else:
+            theta0, previous = self.theta.copy(), self.theta
+            if self.kind == "kinematic":
+                theta0[0:3] = self.link_kf.x_prior[0, :3]
+            if own_track and self._fit_theta is not None:
+                theta0 = previous = self._fit_theta
             theta, _, _ = fit_pose(
                 self.body,
                 theta0,
