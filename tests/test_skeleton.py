@@ -935,6 +935,40 @@ def test_kinematic_filters_warm_up_on_the_raw_trackers_estimate(body, cameras):
         make_estimator("kinematic", body, cameras, {"kinematic": {"fit_source": "bogus"}})
 
 
+def test_kinematic_filters_restart_with_the_raw_trackers_new_track(body, cameras):
+    """kinematic.follow_raw_track: when the raw tracker starts a new track (here: it is reset
+    after 12 frames and relocalises from the next frame's blobs, as after a loss or a face turn),
+    the filters restart at its pose and warm up again, so the raw estimate is the output for
+    warmup_frames frames; with the option off the filters keep their own track."""
+    warmup, restart_at = 4, 12
+    outputs = {}
+    for follow in (True, False):
+        est = make_estimator("kinematic", body, cameras,
+                             {"kinematic": {"warmup_frames": warmup, "follow_raw_track": follow}})
+        rng = np.random.default_rng(5)
+        same = []
+        for k in range(restart_at + 8):
+            if k == restart_at:
+                est.raw.reset()
+            theta = pose_at("default", 1.0 + k / FPS, body)
+            e = est.update(stamp(k), blobs_2d(body, cameras, theta, rng, 1.0))
+            est.predict(stamp(k + 1))
+            same.append(bool(np.array_equal(e.joints, est.raw._estimate(stamp(k)).joints)))
+            assert e.status == STATUS_TRACKING
+            if k >= 2:
+                assert np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean() < 0.03, (follow, k)
+        outputs[follow] = same
+        assert est.raw.initialisations == 2
+        assert est.raw_restarts == ([stamp(0), stamp(restart_at)] if follow else [])
+    # the raw estimate leads during each warm-up: from the start and, when following, after the restart
+    first = [True] * warmup + [False] * (restart_at - warmup)
+    assert outputs[True] == first + [True] * warmup + [False] * (8 - warmup)
+    assert outputs[False] == first + [False] * 8
+    # the filters no longer run their own face checks while following a tracking raw tracker
+    est = make_estimator("kinematic", body, cameras, {"kinematic": {"warmup_frames": warmup}})
+    est.update(stamp(0), blobs_2d(body, cameras, pose_at("default", 1.0, body), np.random.default_rng(1), 1.0))
+    assert est._verify_left == 0 and est.raw._verify_left > 0
+
 def test_kinematic_orientation_from_fit_holds_the_heading_through_swapped_legs(body, cameras):
     """kinematic.orientation_from_fit (stop 28): the walk with the legs' l_/r_ labels exchanged in
     every view for half a second (frames 20-34), as the 2-D trackers do where the trouser legs

@@ -76,7 +76,10 @@ Kinds
     initiation: for the first ``kinematic.warmup_frames`` frames after the filters are
     (re)initialised, while their velocities and accelerations are still unknown, the raw
     tracker's estimate and prediction are the output (and so the 2-D priors); then the
-    filters take over. ``predict`` runs the filters forward and solves the constraints for the
+    filters take over. The raw tracker also owns the track's life cycle
+    (``kinematic.follow_raw_track``): when it starts a new track (start-up, relocalisation, a
+    re-seed, its face check or verification turning the body round) the filters restart at its
+    pose and warm up again, and they run no face checks of their own. ``predict`` runs the filters forward and solves the constraints for the
     predicted goals; its blobs carry the prediction covariance from ``P_prior``.
 
 ``'dynamic'`` — full dynamics (paper §2.1): links with masses and inertias,
@@ -345,6 +348,7 @@ class KinematicConfig:
     orientation_from_fit: bool = True
     fit_source: str = "baseline"
     warmup_frames: int = 40
+    follow_raw_track: bool = True
 
 
 @dataclass
@@ -1124,6 +1128,9 @@ class _Estimator:
         self.rest_sigma_dof = np.concatenate(
             [np.full(lk.n_dof, self.rest_sigma_link[i]) for i, lk in enumerate(body.links)]
         )
+        #: tracks started so far (start-up, relocalisation, re-seed, face turn: each ``_initialise``;
+        #: never reset, so that a reset followed by a new track still counts as a change)
+        self.initialisations = 0
         self.reset()
 
     # -- state ---------------------------------------------------------------
@@ -1760,6 +1767,7 @@ class BaselineEstimator(_Estimator):
                 for sign in (1.0, -1.0)]
 
     def _initialise(self, stamp_ns, theta, obs):
+        self.initialisations += 1
         self._dof_velocity = None
         self._set_pose(theta, np.eye(self.body.n_dof) * 1e-2, None, 0.0)
 
@@ -1940,8 +1948,12 @@ class KinematicEstimator(_Estimator):
     def reset(self) -> None:
         super().reset()
         self._filter_frames = 0  # filter updates since the last (re)initialisation
+        #: stamps (ns) at which the filters were re-initialised at the raw tracker's new track
+        self.raw_restarts: list[int] = []
         if self.raw is not None:
             self.raw.reset()
+        # the raw tracker's track count seen last (_follow_raw_track)
+        self._raw_initialisations = self.raw.initialisations if self.raw is not None else 0
 
     def update(self, stamp_ns, blobs_by_camera, edges=None):
         """As :meth:`_Estimator.update`, with the raw tracker (``self.raw``) updated first on the
@@ -1952,7 +1964,13 @@ class KinematicEstimator(_Estimator):
         t0 = time.perf_counter()
         raw = self.raw.update(stamp_ns, blobs_by_camera, edges)
         raw_ms = 1e3 * (time.perf_counter() - t0)
-        out = super().update(stamp_ns, blobs_by_camera, edges)
+        if self._follow_raw_track(int(stamp_ns)):
+            # restarted at the raw tracker's pose of this frame: its blobs are already in it (as a
+            # track's first frame, no filter update on them)
+            self.timings_ms, self.quality, self.last_observed = {}, self.raw.quality, self.raw.last_observed
+            out = self._estimate(int(stamp_ns))
+        else:
+            out = super().update(stamp_ns, blobs_by_camera, edges)
         # the raw tracker's update (its own triangulation included) is this estimator's outlier fit
         self.timings_ms["outlier_fit"] = self.timings_ms.get("outlier_fit", 0.0) + raw_ms
         return raw if self._raw_leads() else out
@@ -1966,6 +1984,39 @@ class KinematicEstimator(_Estimator):
         if self.raw is not None:
             self.raw.reseed(stamp_ns, joints, sigma_m, limb_sigma_m)
         return super().reseed(stamp_ns, joints, sigma_m, limb_sigma_m)
+
+    def _follow_raw_track(self, stamp_ns: int) -> bool:
+        """The raw tracker owns the track's life cycle (``kinematic.follow_raw_track``): when it has
+        started a new track since the last frame (start-up, relocalisation, re-seed, its face check
+        or verification turning the body round), or tracks while the filters do not, the filters
+        are re-initialised at its pose, as after a re-seed, and warm up again. Without this the
+        filters keep a body the raw tracker has just found wrong (a mirrored start, a hand on the
+        other side) and, once they lead, output it. Returns whether they were re-initialised."""
+        started = self.raw.initialisations != self._raw_initialisations
+        self._raw_initialisations = self.raw.initialisations
+        if not (self.cfg.kinematic.follow_raw_track and self._raw_tracking()):
+            return False
+        if not started and self.theta is not None and self.status == STATUS_TRACKING:
+            return False
+        if self.stamp_ns is not None and stamp_ns < self.stamp_ns:
+            return False  # time went backwards: update() resets and starts again
+        self._initialise(stamp_ns, self.raw.theta, self.raw.last_observed)
+        self._start_verification()
+        self._verify_left = 0  # the raw tracker's checks decide the heading (_check_facing)
+        self.status, self.missed, self.stamp_ns = STATUS_TRACKING, 0, stamp_ns
+        self.raw_restarts.append(stamp_ns)
+        return True
+
+    def _check_facing(self, stamp_ns, blobs_by_camera, obs):
+        """The face check (:meth:`_Estimator._check_facing`), left to the raw tracker while it
+        tracks and ``kinematic.follow_raw_track`` is on (its turns re-initialise the filters)."""
+        if not (self.cfg.kinematic.follow_raw_track and self._raw_tracking()):
+            super()._check_facing(stamp_ns, blobs_by_camera, obs)
+
+    def _verify_facing(self, stamp_ns, obs):
+        """The mirrored-start verification, left to the raw tracker as :meth:`_check_facing`."""
+        if not (self.cfg.kinematic.follow_raw_track and self._raw_tracking()):
+            super()._verify_facing(stamp_ns, obs)
 
     def _raw_tracking(self) -> bool:
         return self.raw is not None and self.raw.theta is not None and self.raw.status == STATUS_TRACKING
@@ -1983,6 +2034,7 @@ class KinematicEstimator(_Estimator):
 
     def _initialise(self, stamp_ns, theta, obs):
         k = self.cfg.kinematic
+        self.initialisations += 1
         self.theta = self.body.clip(theta)
         p, R = self.kin.poses(self.theta)
         self.p, self.R = p, R
