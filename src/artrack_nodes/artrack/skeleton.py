@@ -79,8 +79,9 @@ Kinds
     filters take over. The raw tracker also owns the track's life cycle
     (``kinematic.follow_raw_track``): when it starts a new track (start-up, relocalisation, a
     re-seed, its face check or verification turning the body round) the filters restart at its
-    pose and warm up again, and they run no face checks of their own. ``predict`` runs the filters forward and solves the constraints for the
-    predicted goals; its blobs carry the prediction covariance from ``P_prior``.
+    pose and warm up again, and they run no face checks of their own. ``predict`` runs the
+    filters forward and solves the constraints for the predicted goals; its blobs carry the
+    prediction covariance from ``P_prior``.
 
 ``'dynamic'`` — full dynamics (paper §2.1): links with masses and inertias,
     observations as damped springs, ``q̈ = W (Q + Jᵀλ)`` integrated in
