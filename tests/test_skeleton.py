@@ -968,6 +968,10 @@ def test_kinematic_filters_restart_with_the_raw_trackers_new_track(body, cameras
     est = make_estimator("kinematic", body, cameras, {"kinematic": {"warmup_frames": warmup}})
     est.update(stamp(0), blobs_2d(body, cameras, pose_at("default", 1.0, body), np.random.default_rng(1), 1.0))
     assert est._verify_left == 0 and est.raw._verify_left > 0
+    # a switch must be a YAML bool: bool("false") would have turned it on
+    with pytest.raises(InputError, match="kinematic.follow_raw_track' must be true or false"):
+        make_estimator("kinematic", body, cameras, {"kinematic": {"follow_raw_track": "false"}})
+
 
 def test_kinematic_orientation_from_fit_holds_the_heading_through_swapped_legs(body, cameras):
     """kinematic.orientation_from_fit (stop 28): the walk with the legs' l_/r_ labels exchanged in

@@ -435,6 +435,9 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
                     f"skeleton config: unknown field '{name}.{key}' (known: {', '.join(sorted(known))})"
                 )
             default = getattr(current, key)
+            if isinstance(default, bool) and not isinstance(value, bool):
+                # bool("false") is True: a switch must be a YAML true / false
+                raise InputError(f"skeleton config: field '{name}.{key}' must be true or false (got {value!r})")
             try:
                 value = type(default)(value)
             except (TypeError, ValueError):
