@@ -628,6 +628,25 @@ def test_config_file_mirrors_the_dataclass():
         assert f"\n{f.name}:" in text, f.name
 
 
+def test_config_switches_take_only_yaml_bools(tmp_path):
+    """load_dataclass_yaml: a bool field given a string ('false' would be truthy) or a number is
+    an InputError naming the file and the field; true / false load."""
+    from artrack.config import InputError
+
+    @dataclasses.dataclass
+    class Switches:
+        enabled: bool = True
+        gain: float = 1.0
+
+    path = tmp_path / "switches.yaml"
+    path.write_text("enabled: false\ngain: 2.0\n")
+    assert load_dataclass_yaml(path, Switches) == Switches(False, 2.0)
+    for bad in ('"false"', "0"):
+        path.write_text(f"enabled: {bad}\n")
+        with pytest.raises(InputError, match="switches.yaml: field 'enabled' must be true or false"):
+            load_dataclass_yaml(path, Switches)
+
+
 def test_startup_waits_for_the_complete_seed_and_settling_by_default():
     """With the defaults no start-up blobs come before the seed is complete and
     ``startup_settle_frames`` more frames have passed: a running median of a few samples

@@ -150,6 +150,8 @@ def test_config_yaml_documents_every_field_with_its_default():
     with pytest.raises(ValueError):
         EdgeTrackerConfig(select="closest")
     assert EdgeTrackerConfig.from_dict({"iterations": "2", "colour": False}).iterations == 2
+    with pytest.raises(ValueError, match="colour must be true or false"):
+        EdgeTrackerConfig.from_dict({"colour": "false"})  # bool("false") would have turned it on
 
 
 def test_edges_alone_hold_a_rendered_walk(scene):

@@ -60,6 +60,10 @@ def dataclass_from_dict(cls: type[T], data: dict[str, Any], where: str) -> T:
     unknown = sorted(set(data) - names)
     if unknown:
         raise InputError(f"{where}: unknown field '{unknown[0]}' (known: {', '.join(sorted(names))})")
+    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        if isinstance(f.default, bool) and f.name in data and not isinstance(data[f.name], bool):
+            # a string "false" would be truthy: a switch must be a YAML true / false
+            raise InputError(f"{where}: field '{f.name}' must be true or false (got {data[f.name]!r})")
     return cls(**data)
 
 

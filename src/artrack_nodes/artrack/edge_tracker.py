@@ -120,7 +120,10 @@ class EdgeTrackerConfig:
         kw = {}
         for k, v in data.items():
             default = getattr(cls(), k)
-            kw[k] = type(default)(v) if not isinstance(default, bool) else bool(v)
+            if isinstance(default, bool) and not isinstance(v, bool):
+                # bool("false") is True: a switch must be a YAML true / false
+                raise ValueError(f"EdgeTrackerConfig: {k} must be true or false, got {v!r}")
+            kw[k] = type(default)(v)
         return cls(**kw)
 
     @classmethod
