@@ -54,6 +54,13 @@ def read_yaml(path: str | os.PathLike) -> dict[str, Any]:
     return data
 
 
+def require_bool(value: Any, subject: str) -> None:
+    """InputError ``"<subject> must be true or false"`` unless ``value`` is a bool: a switch
+    must be a YAML true / false (``bool("false")`` is True, and a string would be truthy)."""
+    if not isinstance(value, bool):
+        raise InputError(f"{subject} must be true or false (got {value!r})")
+
+
 def dataclass_from_dict(cls: type[T], data: dict[str, Any], where: str) -> T:
     """Build dataclass ``cls`` from ``data``; an unknown key is an InputError naming it."""
     names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
@@ -61,9 +68,8 @@ def dataclass_from_dict(cls: type[T], data: dict[str, Any], where: str) -> T:
     if unknown:
         raise InputError(f"{where}: unknown field '{unknown[0]}' (known: {', '.join(sorted(names))})")
     for f in dataclasses.fields(cls):  # type: ignore[arg-type]
-        if isinstance(f.default, bool) and f.name in data and not isinstance(data[f.name], bool):
-            # a string "false" would be truthy: a switch must be a YAML true / false
-            raise InputError(f"{where}: field '{f.name}' must be true or false (got {data[f.name]!r})")
+        if isinstance(f.default, bool) and f.name in data:
+            require_bool(data[f.name], f"{where}: field '{f.name}'")
     return cls(**data)
 
 

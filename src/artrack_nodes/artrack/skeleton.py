@@ -161,6 +161,7 @@ from scipy.optimize import least_squares
 
 from .body_model import BodyModel, limb_joint_indices
 from .cameras import Camera
+from .config import require_bool
 from .constraints import (
     BallJoints,
     ConstraintSolver,
@@ -435,9 +436,8 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
                     f"skeleton config: unknown field '{name}.{key}' (known: {', '.join(sorted(known))})"
                 )
             default = getattr(current, key)
-            if isinstance(default, bool) and not isinstance(value, bool):
-                # bool("false") is True: a switch must be a YAML true / false
-                raise InputError(f"skeleton config: field '{name}.{key}' must be true or false (got {value!r})")
+            if isinstance(default, bool):
+                require_bool(value, f"skeleton config: field '{name}.{key}'")
             try:
                 value = type(default)(value)
             except (TypeError, ValueError):
@@ -1998,7 +1998,7 @@ class KinematicEstimator(_Estimator):
         other side) and, once they lead, output it. Returns whether they were re-initialised."""
         started = self.raw.initialisations != self._raw_initialisations
         self._raw_initialisations = self.raw.initialisations
-        if not (self.cfg.kinematic.follow_raw_track and self._raw_tracking()):
+        if not self._raw_owns_track():
             return False
         if not started and self.theta is not None and self.status == STATUS_TRACKING:
             return False
@@ -2014,16 +2014,21 @@ class KinematicEstimator(_Estimator):
     def _check_facing(self, stamp_ns, blobs_by_camera, obs):
         """The face check (:meth:`_Estimator._check_facing`), left to the raw tracker while it
         tracks and ``kinematic.follow_raw_track`` is on (its turns re-initialise the filters)."""
-        if not (self.cfg.kinematic.follow_raw_track and self._raw_tracking()):
+        if not self._raw_owns_track():
             super()._check_facing(stamp_ns, blobs_by_camera, obs)
 
     def _verify_facing(self, stamp_ns, obs):
         """The mirrored-start verification, left to the raw tracker as :meth:`_check_facing`."""
-        if not (self.cfg.kinematic.follow_raw_track and self._raw_tracking()):
+        if not self._raw_owns_track():
             super()._verify_facing(stamp_ns, obs)
 
     def _raw_tracking(self) -> bool:
         return self.raw is not None and self.raw.theta is not None and self.raw.status == STATUS_TRACKING
+
+    def _raw_owns_track(self) -> bool:
+        """Whether the raw tracker decides the track's life cycle now (``kinematic.follow_raw_track``
+        and it is tracking): :meth:`_follow_raw_track`, :meth:`_check_facing`, :meth:`_verify_facing`."""
+        return self.cfg.kinematic.follow_raw_track and self._raw_tracking()
 
     def _raw_leads(self) -> bool:
         """Whether the raw tracker's estimate is the output: it is tracking, and the filters have
