@@ -460,7 +460,75 @@ class Force:
 
 
 SoftTerm = PointGoal | OrientationGoal | Force
-SoftTerms = Sequence[SoftTerm] | Callable[[np.ndarray, np.ndarray], Sequence[SoftTerm]]
+
+
+@dataclass(frozen=True)
+class PackedTerms:
+    """Soft terms as arrays by kind, what :func:`soft_energy_terms` evaluates: point goals
+    (links (n,), link-frame points (n, 3), targets (n, 3), stiffnesses (n, 3, 3)),
+    orientation goals (links, targets (n, 3, 3), stiffnesses (n, 3, 3)) and forces
+    (links, points (n, 3), forces (n, 3)). Built once by :func:`pack_terms` and joined
+    with ``+``, so a solver iterating on fixed goals does not rebuild them."""
+
+    goal_link: np.ndarray
+    goal_point: np.ndarray
+    goal_target: np.ndarray
+    goal_stiffness: np.ndarray
+    orient_link: np.ndarray
+    orient_target: np.ndarray
+    orient_stiffness: np.ndarray
+    force_link: np.ndarray
+    force_point: np.ndarray
+    force_force: np.ndarray
+
+    def __add__(self, other: PackedTerms) -> PackedTerms:
+        return PackedTerms(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
+
+    def __len__(self) -> int:
+        return self.goal_link.size + self.orient_link.size + self.force_link.size
+
+
+def orientation_goals(links: np.ndarray, targets: np.ndarray, stiffness: np.ndarray | float) -> PackedTerms:
+    """Packed torsional springs: links (n,), targets (n, 3, 3), stiffness scalar, (n,) or (n, 3, 3)."""
+    links = np.asarray(links, int).reshape(-1)
+    S = np.asarray(stiffness, float)
+    if S.ndim < 3:
+        S = np.broadcast_to(S.reshape(-1, 1, 1), (links.size, 1, 1)) * np.eye(3)
+    return PackedTerms(
+        np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)),
+        links, np.asarray(targets, float).reshape(-1, 3, 3), S,
+        np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)),
+    )  # fmt: skip
+
+
+def pack_terms(terms: Sequence[SoftTerm] | PackedTerms) -> PackedTerms:
+    """A sequence of soft terms -> :class:`PackedTerms` (InputError on an unknown term)."""
+    if isinstance(terms, PackedTerms):
+        return terms
+    goals = [t for t in terms if isinstance(t, PointGoal)]
+    orients = [t for t in terms if isinstance(t, OrientationGoal)]
+    forces = [t for t in terms if isinstance(t, Force)]
+    if len(goals) + len(orients) + len(forces) != len(terms):
+        bad = next(t for t in terms if not isinstance(t, PointGoal | OrientationGoal | Force))
+        raise InputError(f"constraints: unknown soft term {type(bad).__name__}")
+    return PackedTerms(
+        np.array([t.link for t in goals], int),
+        np.array([t.point for t in goals], float).reshape(-1, 3),
+        np.array([t.target for t in goals], float).reshape(-1, 3),
+        np.array([t.stiffness for t in goals], float).reshape(-1, 3, 3),
+        np.array([t.link for t in orients], int),
+        np.array([t.target for t in orients], float).reshape(-1, 3, 3),
+        np.array(
+            [np.eye(3) * float(t.stiffness) if np.ndim(t.stiffness) == 0 else t.stiffness for t in orients],
+            float,
+        ).reshape(-1, 3, 3),
+        np.array([t.link for t in forces], int),
+        np.array([t.point for t in forces], float).reshape(-1, 3),
+        np.array([t.force for t in forces], float).reshape(-1, 3),
+    )
+
+
+SoftTerms = Sequence[SoftTerm] | PackedTerms | Callable[[np.ndarray, np.ndarray], Sequence[SoftTerm] | PackedTerms]
 
 
 def _curvature(f: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -469,7 +537,11 @@ def _curvature(f: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 def soft_energy_terms(
-    n_links: int, p: np.ndarray, R: np.ndarray, terms: Sequence[SoftTerm], second_order: bool = False
+    n_links: int,
+    p: np.ndarray,
+    R: np.ndarray,
+    terms: Sequence[SoftTerm] | PackedTerms,
+    second_order: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Generalised force Q (L, 6) = −∂E/∂ν, stiffness K (L, 6, 6) and energy E.
 
@@ -477,22 +549,17 @@ def soft_energy_terms(
     curvature of the point springs (lever arm × residual force) is added, giving
     the exact Hessian of E (possibly indefinite far from the goals).
     """
+    t = pack_terms(terms)
     Q = np.zeros((n_links, 6))
     K = np.zeros((n_links, 6, 6))
     energy = 0.0
-    goals = [t for t in terms if isinstance(t, PointGoal)]
-    orients = [t for t in terms if isinstance(t, OrientationGoal)]
-    forces = [t for t in terms if isinstance(t, Force)]
-    if len(goals) + len(orients) + len(forces) != len(terms):
-        bad = next(t for t in terms if not isinstance(t, PointGoal | OrientationGoal | Force))
-        raise InputError(f"constraints: unknown soft term {type(bad).__name__}")
-    if goals:  # springs on link points, vectorised
-        i = np.array([t.link for t in goals], int)
-        r = np.einsum("nij,nj->ni", R[i], np.array([t.point for t in goals], float).reshape(-1, 3))
-        e = p[i] + r - np.array([t.target for t in goals], float).reshape(-1, 3)
-        S = np.array([t.stiffness for t in goals], float).reshape(-1, 3, 3)
+    if t.goal_link.size:  # springs on link points
+        i = t.goal_link
+        r = np.einsum("nij,nj->ni", R[i], t.goal_point)
+        e = p[i] + r - t.goal_target
+        S = t.goal_stiffness
         Se = np.einsum("nij,nj->ni", S, e)
-        A = np.concatenate([np.broadcast_to(np.eye(3), (len(goals), 3, 3)), -skew(r)], axis=2)  # ∂x/∂ν
+        A = np.concatenate([np.broadcast_to(np.eye(3), (i.size, 3, 3)), -skew(r)], axis=2)  # ∂x/∂ν
         At = np.swapaxes(A, 1, 2)
         np.add.at(Q, i, -np.einsum("nij,nj->ni", At, Se))
         Kg = At @ S @ A
@@ -503,31 +570,23 @@ def soft_energy_terms(
             ] * np.eye(3)
         np.add.at(K, i, Kg)
         energy += 0.5 * float(np.einsum("ni,ni->", e, Se))
-    if orients:  # torsional springs, vectorised
-        i = np.array([t.link for t in orients], int)
-        target = np.array([t.target for t in orients], float).reshape(-1, 3, 3)
-        e = log_so3(R[i] @ np.swapaxes(target, 1, 2))
-        S = np.array(
-            [np.eye(3) * float(t.stiffness) if np.ndim(t.stiffness) == 0 else t.stiffness for t in orients],
-            float,
-        )
+    if t.orient_link.size:  # torsional springs
+        i = t.orient_link
+        e = log_so3(R[i] @ np.swapaxes(t.orient_target, 1, 2))
+        S = t.orient_stiffness
         Se = np.einsum("nij,nj->ni", S, e)
         Jr = left_jacobian_inverse(e)
         Jrt = np.swapaxes(Jr, 1, 2)
-        Qr = np.zeros((len(orients), 6))
-        Qr[:, 3:] = -np.einsum("nij,nj->ni", Jrt, Se)
-        np.add.at(Q, i, Qr)
-        Kr = np.zeros((len(orients), 6, 6))
-        Kr[:, 3:, 3:] = Jrt @ S @ Jr
-        np.add.at(K, i, Kr)
+        np.add.at(Q[:, 3:], i, -np.einsum("nij,nj->ni", Jrt, Se))
+        np.add.at(K[:, 3:, 3:], i, Jrt @ S @ Jr)
         energy += 0.5 * float(np.einsum("ni,ni->", e, Se))
-    for term in forces:
-        i = term.link
-        r = R[i] @ np.asarray(term.point, dtype=float)
-        f = np.asarray(term.force, dtype=float)
-        Q[i, :3] += f
-        Q[i, 3:] += cross(r, f)
-        energy -= float(f @ (p[i] + r))
+    if t.force_link.size:  # constant forces
+        i = t.force_link
+        r = np.einsum("nij,nj->ni", R[i], t.force_point)
+        f = t.force_force
+        np.add.at(Q[:, :3], i, f)
+        np.add.at(Q[:, 3:], i, cross(r, f))
+        energy -= float(np.einsum("ni,ni->", f, p[i] + r))
     return Q, K, energy
 
 
@@ -545,9 +604,10 @@ def _block_pattern(n_rows: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def assemble(
-    constraints: Sequence[Constraint], p: np.ndarray, R: np.ndarray
-) -> tuple[np.ndarray, sp.csr_matrix]:
-    """Stack all constraints: c (m,) and J = ∂c/∂ν as a sparse (m, 6L) CSR matrix."""
+    constraints: Sequence[Constraint], p: np.ndarray, R: np.ndarray, dense: bool = False
+) -> tuple[np.ndarray, sp.csr_matrix | np.ndarray]:
+    """Stack all constraints: c (m,) and J = ∂c/∂ν as a sparse (m, 6L) CSR matrix, or with
+    ``dense`` as an ndarray (the same entries; small bodies are faster without sparse overhead)."""
     n_links = p.shape[0]
     rows, cols, vals, cs = [], [], [], []
     offset = 0
@@ -559,7 +619,11 @@ def assemble(
         vals.append(vv)
         offset += con.n_rows
     c = np.concatenate(cs) if cs else np.zeros(0)
-    if rows:
+    if dense:
+        J = np.zeros((offset, 6 * n_links))
+        if rows:
+            np.add.at(J, (np.concatenate(rows), np.concatenate(cols)), np.concatenate(vals))
+    elif rows:
         J = sp.coo_matrix(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(offset, 6 * n_links)
         ).tocsr()
@@ -568,20 +632,43 @@ def assemble(
     return c, J
 
 
-def block_inverse(blocks: np.ndarray) -> sp.csr_matrix:
-    """(L, 6, 6) SPD blocks -> sparse block-diagonal inverse (6L, 6L)."""
+def block_inverse(blocks: np.ndarray, as_blocks: bool = False) -> sp.csr_matrix | np.ndarray:
+    """(L, 6, 6) SPD blocks -> their block-diagonal inverse (6L, 6L) as a sparse matrix, or with
+    ``as_blocks`` as the (L, 6, 6) inverse blocks (see :func:`apply_block_diagonal`)."""
     inv = np.linalg.inv(blocks)
     inv = 0.5 * (inv + np.swapaxes(inv, 1, 2))
-    return sp.block_diag(list(inv), format="csr")
+    return inv if as_blocks else sp.block_diag(list(inv), format="csr")
 
 
-#: systems with at most this many rows are iterated through a dense operator (speed only)
+def apply_block_diagonal(W: sp.spmatrix | np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``W x`` (6L,) for W a sparse (6L, 6L) matrix or its (L, 6, 6) diagonal blocks."""
+    if isinstance(W, np.ndarray) and W.ndim == 3:
+        return np.einsum("nij,nj->ni", W, x.reshape(-1, W.shape[1])).ravel()
+    return W @ x
+
+
+def _sandwich(J: sp.spmatrix | np.ndarray, W: sp.spmatrix | np.ndarray) -> sp.csr_matrix | np.ndarray:
+    """``J W Jᵀ``: dense when J is an ndarray (W then sparse or (L, 6, 6) blocks), else sparse."""
+    if isinstance(J, np.ndarray):
+        m = J.shape[0]
+        if isinstance(W, np.ndarray) and W.ndim == 3:
+            L, k = W.shape[0], W.shape[1]
+            JW = np.einsum("mni,nij->mnj", J.reshape(m, L, k), W).reshape(m, L * k)
+        else:
+            JW = np.asarray((W.T @ J.T).T)  # W is symmetric block-diagonal: (W Jᵀ)ᵀ = J W
+        return JW @ J.T
+    if isinstance(W, np.ndarray):
+        W = sp.block_diag(list(W), format="csr")
+    return (J @ W @ J.T).tocsr()
+
+
+#: systems with at most this many rows are solved on dense matrices (speed only)
 _DENSE_OPERATOR_ROWS = 256
 
 
 def solve_multipliers(
-    J: sp.spmatrix,
-    W: sp.spmatrix,
+    J: sp.spmatrix | np.ndarray,
+    W: sp.spmatrix | np.ndarray,
     b: np.ndarray,
     method: str = "cg",
     rtol: float = 1e-13,
@@ -589,41 +676,45 @@ def solve_multipliers(
 ) -> np.ndarray:
     """Solve ``(J W Jᵀ) λ = b`` for λ (m,).
 
-    method: 'cg' (conjugate gradients, Jacobi-preconditioned), 'bicg'
-    (biconjugate gradients, as in the paper) or 'dense' (numpy; tests).
-    A tiny diagonal shift keeps redundant (rank-deficient) constraint sets
-    solvable.
+    J: (m, 6L) sparse or dense; W: sparse (6L, 6L) or its (L, 6, 6) diagonal blocks.
+    method: 'cg' (conjugate gradients, Jacobi-preconditioned), 'bicg' (biconjugate
+    gradients, as in the paper) or 'dense' (numpy; tests). A tiny diagonal shift keeps
+    redundant (rank-deficient) constraint sets solvable.
     """
     m = J.shape[0]
     if m == 0:
         return np.zeros(0)
-    A = (J @ W @ J.T).tocsr()
-    diag = A.diagonal()
+    A = _sandwich(J, W)
+    diag = A.diagonal().copy()
     shift = 1e-14 * max(float(diag.max()), 1e-300)
-    A = A + shift * sp.identity(m, format="csr")
+    if isinstance(A, np.ndarray):
+        A[np.diag_indices(m)] += shift
+    else:
+        A = A + shift * sp.identity(m, format="csr")
+    diag += shift
     if method == "dense":
-        return np.linalg.solve(A.toarray(), b)
+        return np.linalg.solve(A if isinstance(A, np.ndarray) else A.toarray(), b)
     if not np.any(b):
         return np.zeros(m)
     solver = {"cg": spla.cg, "bicg": spla.bicg}.get(method)
     if solver is None:
         raise InputError(f"constraints: unknown linear solver method {method!r} (cg, bicg, dense)")
-    inv_diag = 1.0 / np.maximum(diag + shift, 1e-300)
-    if m <= _DENSE_OPERATOR_ROWS:
-        # Same Krylov iteration; tiny systems run faster through a dense operator.
-        A = A.toarray()
-        M = spla.LinearOperator(
-            (m, m), matvec=lambda x: inv_diag * x.ravel(), rmatvec=lambda x: inv_diag * x.ravel(), dtype=float
-        )
-    else:
-        M = sp.diags(inv_diag)
     if x0 is not None and (x0.shape != b.shape or not np.all(np.isfinite(x0))):
         x0 = None
-    lam, info = solver(A, b, x0=x0, rtol=rtol, atol=0.0, maxiter=20 * m + 50, M=M)
+    if m <= _DENSE_OPERATOR_ROWS:
+        # Same Krylov iteration on a dense matrix (tiny systems run faster so). Jacobi
+        # preconditioning as the symmetric scaling D^-1/2 A D^-1/2 (the same iterates as
+        # preconditioning with D^-1), which spares the preconditioner's per-iteration call.
+        s = 1.0 / np.sqrt(np.maximum(diag, 1e-300))
+        A = A.toarray() if not isinstance(A, np.ndarray) else A
+        As = s[:, None] * A * s[None, :]
+        y, info = solver(As, s * b, x0=None if x0 is None else x0 / s, rtol=rtol, atol=0.0, maxiter=20 * m + 50)
+        lam = s * y
+    else:
+        M = sp.diags(1.0 / np.maximum(diag, 1e-300))
+        lam, info = solver(A, b, x0=x0, rtol=rtol, atol=0.0, maxiter=20 * m + 50, M=M)
     if info != 0:  # not converged: fall back to a direct solve
-        lam = (
-            np.linalg.lstsq(A, b, rcond=None)[0] if isinstance(A, np.ndarray) else spla.spsolve(A.tocsc(), b)
-        )
+        lam = np.linalg.lstsq(A, b, rcond=None)[0] if isinstance(A, np.ndarray) else spla.spsolve(A.tocsc(), b)
     return np.asarray(lam, dtype=float)
 
 
@@ -691,6 +782,9 @@ class ConstraintSolver:
         #: trial steps: plain, then with the second-order correction (projection) if rejected
         self._corrections = (False, True)
         self.n_rows = sum(c.n_rows for c in self.constraints)
+        #: small systems (a body) are assembled as dense arrays and W kept as its (L, 6, 6)
+        #: blocks: the same arithmetic without scipy.sparse's per-call overhead
+        self._dense = self.n_rows <= _DENSE_OPERATOR_ROWS
 
     # -- pieces -------------------------------------------------------------
     def _check(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -732,26 +826,34 @@ class ConstraintSolver:
         """J = ∂c/∂ν: sparse (m, 6L)."""
         return assemble(self.constraints, p, R)[1]
 
+    def _assemble(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix | np.ndarray]:
+        return assemble(self.constraints, p, R, dense=self._dense)
+
+    def _weights(self, blocks: np.ndarray) -> sp.csr_matrix | np.ndarray:
+        """W from the (L, 6, 6) blocks it inverts, in the form this solver's systems use."""
+        return block_inverse(blocks, as_blocks=self._dense)
+
     def project(
         self,
         p: np.ndarray,
         R: np.ndarray,
-        W: sp.spmatrix | None = None,
+        W: sp.spmatrix | np.ndarray | None = None,
         tol: float = 1e-9,
         max_iterations: int = 50,
     ) -> tuple[np.ndarray, np.ndarray, float, int]:
         """Drift removal: repeat ``δq = −W Jᵀ (J W Jᵀ)⁻¹ c`` (the W-weighted least change)
-        until ‖c‖ < tol. Returns (p, R, ‖c‖, iterations)."""
+        until ‖c‖ < tol. W: sparse (6L, 6L) or its (L, 6, 6) blocks (default: the inverse
+        link masses). Returns (p, R, ‖c‖, iterations)."""
         p, R = self._check(p, R)
         if W is None:
-            W = block_inverse(self.mass_blocks(R))
-        c, J = assemble(self.constraints, p, R)
+            W = self._weights(self.mass_blocks(R))
+        c, J = self._assemble(p, R)
         norm = float(np.linalg.norm(c)) if c.size else 0.0
         it = 0
         while norm >= tol and it < max_iterations:
             lam = solve_multipliers(J, W, -c, self.method, rtol=1e-11)
-            p, R = retract(p, R, W @ (J.T @ lam))
-            c, J = assemble(self.constraints, p, R)
+            p, R = retract(p, R, apply_block_diagonal(W, J.T @ lam))
+            c, J = self._assemble(p, R)
             norm = float(np.linalg.norm(c))
             it += 1
         return p, R, norm, it
@@ -831,17 +933,17 @@ class ConstraintSolver:
         newton = False
         current = terms(p, R) if callable(terms) else terms
         Qf, K, energy = soft_energy_terms(self.n_links, p, R, current)
-        c, J = assemble(self.constraints, p, R)
+        c, J = self._assemble(p, R)
         for iterations in range(1, max_iterations + 1):  # noqa: B007 - reported below
             M = self.mass_blocks(R)
             if newton:
                 K = self._convexify(K - self._constraint_curvature(p, R, lam))
             accepted = False
             for _ in range(12):
-                W = block_inverse(K + mu * M)
-                WQ = W @ Qf.ravel()
+                W = self._weights(K + mu * M)
+                WQ = apply_block_diagonal(W, Qf.ravel())
                 lam = solve_multipliers(J, W, -(J @ WQ) - c, self.method, rtol=1e-9, x0=lam)
-                nu = (WQ + W @ (J.T @ lam)).reshape(-1, 6)
+                nu = (WQ + apply_block_diagonal(W, J.T @ lam)).reshape(-1, 6)
                 rot = float(np.max(np.linalg.norm(nu[:, 3:], axis=1))) if self.n_links else 0.0
                 nu *= min(1.0, max_rotation_step / max(rot, 1e-300))
                 rho = 2.0 * float(np.max(np.abs(lam))) if lam.size else 0.0
@@ -872,7 +974,7 @@ class ConstraintSolver:
             newton = second_order and float(np.max(np.abs(nu))) < newton_radius
             current = trial_terms
             Qf, K, energy = soft_energy_terms(self.n_links, p, R, current, newton)
-            c, J = assemble(self.constraints, p, R)
+            c, J = self._assemble(p, R)
             if float(np.max(np.abs(nu))) < step_tol:
                 break
         p, R, norm, _ = self.project(p, R, W, tol=tol)
@@ -915,25 +1017,25 @@ class ConstraintSolver:
         B = np.zeros_like(M)
         B[:, :3, :3] = linear_damping * M[:, :3, :3]
         B[:, 3:, 3:] = angular_damping * M[:, 3:, 3:]
-        W = block_inverse(M + dt * B + dt * dt * K)
+        W = self._weights(M + dt * B + dt * dt * K)
         Qv = (F - self.velocity_forces(R, nu) - np.einsum("nij,nj->ni", dt * K + B, nu)).ravel()
-        c, J = assemble(self.constraints, p, R)
+        c, J = self._assemble(p, R)
         qd = nu.ravel()
         cdot = J @ qd
         # J̇ q̇ by a directional finite difference of J along q̇.
         h = 1e-6 / max(float(np.max(np.abs(qd))), 1.0)
         p_h, R_h = retract(p, R, h * nu)
-        Jdot_qd = (assemble(self.constraints, p_h, R_h)[1] @ qd - cdot) / h if c.size else c
-        WQ = W @ Qv
+        Jdot_qd = (self._assemble(p_h, R_h)[1] @ qd - cdot) / h if c.size else c
+        WQ = apply_block_diagonal(W, Qv)
         lam = solve_multipliers(J, W, -(J @ WQ) - Jdot_qd - k_s * c - k_d * cdot, self.method)
-        qdd = WQ + W @ (J.T @ lam)
+        qdd = WQ + apply_block_diagonal(W, J.T @ lam)
         nu = (qd + dt * qdd).reshape(-1, 6)
         p, R = retract(p, R, dt * nu)
         norm = float(np.linalg.norm(self.residual(p, R))) if self.n_rows else 0.0
         if project and self.n_rows:
-            Wm = block_inverse(M)
+            Wm = self._weights(M)
             p, R, norm, _ = self.project(p, R, Wm, tol=tol)
-            _, J = assemble(self.constraints, p, R)
+            _, J = self._assemble(p, R)
             lam_v = solve_multipliers(J, Wm, -(J @ nu.ravel()), self.method)
-            nu = (nu.ravel() + Wm @ (J.T @ lam_v)).reshape(-1, 6)
+            nu = (nu.ravel() + apply_block_diagonal(Wm, J.T @ lam_v)).reshape(-1, 6)
         return SolveResult(p, R, nu, 1, norm, norm < tol or not project, energy, lam)

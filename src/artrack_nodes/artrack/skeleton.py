@@ -172,6 +172,8 @@ from .constraints import (
     assemble,
     exp_so3,
     log_so3,
+    orientation_goals,
+    pack_terms,
     soft_energy_terms,
 )
 from .errors import InputError
@@ -2058,7 +2060,7 @@ class KinematicEstimator(_Estimator):
 
     # -- goals -------------------------------------------------------------------
     def _soft_terms(self, blob_x, blob_P, link_x, link_P, R_goal):
-        """Static soft terms and the callable adding the pose-dependent priors."""
+        """Static soft terms (packed once) and the callable adding the pose-dependent priors."""
         k = self.cfg.kinematic
         terms: list = []
         for b in range(len(self.kin.blob_labels)):
@@ -2075,24 +2077,30 @@ class KinematicEstimator(_Estimator):
             for i in self.gravity_links:
                 f = np.array([0.0, 0.0, -k.gravity_weight * self.kin.masses[i]])
                 terms.append(Force(int(i), self.kin.com[i], f))
+        static = pack_terms(terms)
         parent = self.kin.parent
         lo, hi = self.body.lower, self.body.upper
         rest_S = k.rest_weight / self.rest_sigma_link**2
         limit_S = 1.0 / k.limit_sigma_rad**2
+        rest_links = np.flatnonzero(rest_S[1:] > 0) + 1
 
         def all_terms(p, R):
-            out = list(terms)
+            # rest pose relative to the parent, then a joint-limit spring on each link out of its limits
+            out = static + orientation_goals(
+                rest_links, R[parent[rest_links]] @ self.kin.rest_local[rest_links], rest_S[rest_links]
+            )
             theta = self.kin.theta_from_poses(p, R)
             clipped = np.clip(theta, lo, hi)
-            for i, lk in enumerate(self.body.links):
-                if i == 0:
-                    continue
-                Rk = R[parent[i]]
-                if rest_S[i] > 0:
-                    out.append(OrientationGoal(i, Rk @ self.kin.rest_local[i], rest_S[i]))
-                s = lk.dof_slice
-                if np.any(clipped[s] != theta[s]):
-                    out.append(OrientationGoal(i, Rk @ self.kin.local_rotation(i, clipped[s]), limit_S))
+            outside = [
+                i
+                for i, lk in enumerate(self.body.links)
+                if i > 0 and np.any(clipped[lk.dof_slice] != theta[lk.dof_slice])
+            ]
+            if outside:
+                targets = [
+                    R[parent[i]] @ self.kin.local_rotation(i, clipped[self.body.links[i].dof_slice]) for i in outside
+                ]
+                out = out + orientation_goals(outside, np.array(targets), limit_S)
             return out
 
         return terms, all_terms
