@@ -129,6 +129,12 @@ class Constraint:
         """∂c/∂ν as [(link, (n_rows, 6) block)] for each non-world link."""
         raise NotImplementedError
 
+    def residual_and_triplets(
+        self, p: np.ndarray, R: np.ndarray
+    ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(:meth:`residual`, :meth:`triplets`) in one call (constraints sharing terms override it)."""
+        return self.residual(p, R), self.triplets(p, R)
+
     def triplets(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """∂c/∂ν as COO (rows, cols, values), rows local to this constraint."""
         rr, cc = _block_pattern(self.n_rows)
@@ -273,6 +279,13 @@ class BallJoints(Constraint):
             [(3 * j[:, None, None] + np.arange(3)[None, :, None] + np.zeros(6, int)[None, None, :]).ravel()]
             * 2
         )
+        self._cols = np.concatenate(
+            [
+                (6 * links[:, None, None] + np.arange(6)[None, None, :] + np.zeros((1, 3, 1), int)).ravel()
+                for links in (self.link_a, self.link_b)
+            ]
+        )
+        self._eye = np.broadcast_to(np.eye(3), (n, 3, 3))
 
     def _lever(self, R):
         ra = np.einsum("nij,nj->ni", R[self.link_a], self.point_a)
@@ -287,22 +300,14 @@ class BallJoints(Constraint):
         return _blocks_from_triplets(self.n_rows, *self.triplets(p, R))
 
     def triplets(self, p, R):
+        return self.residual_and_triplets(p, R)[1]
+
+    def residual_and_triplets(self, p, R):
         ra, rb = self._lever(R)
-        n = self.link_a.size
-        eye = np.broadcast_to(np.eye(3), (n, 3, 3))
-        Ja = -np.concatenate([eye, -skew(ra)], axis=2)
-        Jb = np.concatenate([eye, -skew(rb)], axis=2)
-        cols = np.concatenate(
-            [
-                (
-                    6 * self.link_a[:, None, None] + np.arange(6)[None, None, :] + np.zeros((1, 3, 1), int)
-                ).ravel(),
-                (
-                    6 * self.link_b[:, None, None] + np.arange(6)[None, None, :] + np.zeros((1, 3, 1), int)
-                ).ravel(),
-            ]
-        )
-        return self._rows, cols, np.concatenate([Ja.ravel(), Jb.ravel()])
+        Ja = -np.concatenate([self._eye, -skew(ra)], axis=2)
+        Jb = np.concatenate([self._eye, -skew(rb)], axis=2)
+        residual = (p[self.link_b] + rb - p[self.link_a] - ra).ravel()
+        return residual, (self._rows, self._cols, np.concatenate([Ja.ravel(), Jb.ravel()]))
 
 
 class HingeAxes(Constraint):
@@ -370,6 +375,9 @@ class HingeAxes(Constraint):
         return _blocks_from_triplets(self.n_rows, *self.triplets(p, R))
 
     def triplets(self, p, R):
+        return self.residual_and_triplets(p, R)[1]
+
+    def residual_and_triplets(self, p, R):
         u, w, E, v, s, co, g = self._terms(R)
         n = len(self.items)
         phi = g[:, None] * v
@@ -390,7 +398,8 @@ class HingeAxes(Constraint):
             blocks.append(E @ Dphi)
         blocks[0] = blocks[0] + cross(E, phi[:, None, :])
         full = [np.concatenate([np.zeros((n, 2, 3)), b], axis=2) for b in blocks]
-        return self._rows, self._cols, np.concatenate([full[0].ravel(), full[1].ravel()])
+        residual = np.einsum("nki,ni->nk", E, phi).ravel()
+        return residual, (self._rows, self._cols, np.concatenate([full[0].ravel(), full[1].ravel()]))
 
 
 @dataclass
@@ -612,8 +621,8 @@ def assemble(
     rows, cols, vals, cs = [], [], [], []
     offset = 0
     for con in constraints:
-        cs.append(con.residual(p, R))
-        rr, cc, vv = con.triplets(p, R)
+        c_k, (rr, cc, vv) = con.residual_and_triplets(p, R)
+        cs.append(c_k)
         rows.append(rr + offset)
         cols.append(cc)
         vals.append(vv)
@@ -939,6 +948,7 @@ class ConstraintSolver:
             if newton:
                 K = self._convexify(K - self._constraint_curvature(p, R, lam))
             accepted = False
+            growth = 10.0
             for _ in range(12):
                 W = self._weights(K + mu * M)
                 WQ = apply_block_diagonal(W, Qf.ravel())
@@ -967,7 +977,10 @@ class ConstraintSolver:
                 if accepted:
                     mu = max(mu / 3.0, 1e-3 * mass_weight)
                     break
-                mu *= 10.0
+                if float(np.max(np.abs(nu))) < step_tol:
+                    break  # converged: an accepted step this small would end the iteration too
+                mu *= growth
+                growth *= 10.0
             if not accepted:
                 break
             p, R = p_t, R_t
