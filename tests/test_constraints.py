@@ -13,10 +13,13 @@ from artrack.constraints import (
     PointCoincidence,
     PointDistance,
     PointGoal,
+    apply_block_diagonal,
     assemble,
     block_inverse,
     exp_so3,
     log_so3,
+    orientation_goals,
+    pack_terms,
     retract,
     soft_energy_terms,
     solve_multipliers,
@@ -275,3 +278,67 @@ def test_batched_constraints_match_single():
     c2, J2 = assemble(batched, p, R)
     np.testing.assert_allclose(c2, c1, atol=1e-12)
     np.testing.assert_allclose(J2.toarray(), J1.toarray(), atol=1e-12)
+    # the one-pass residual + Jacobian agree with the separate calls, and dense assembly with sparse
+    for con in batched:
+        c_k, triplets = con.residual_and_triplets(p, R)
+        np.testing.assert_array_equal(c_k, con.residual(p, R))
+        for got, want in zip(triplets, con.triplets(p, R), strict=True):
+            np.testing.assert_array_equal(got, want)
+    c3, J3 = assemble(single, p, R, dense=True)
+    assert isinstance(J3, np.ndarray)
+    np.testing.assert_array_equal(c3, c1)
+    np.testing.assert_allclose(J3, J1.toarray(), atol=1e-15)
+
+
+def test_packed_terms_equal_the_term_list():
+    """PackedTerms (what the solver iterates on) give the list's forces, stiffness and energy;
+    ``+`` joins packs as list concatenation does; orientation_goals packs torsional springs."""
+    rng = np.random.default_rng(11)
+    p, R = _random_poses(rng, 3)
+    S = np.diag([3.0, 1.0, 2.0])
+    goals = [
+        PointGoal(0, np.array([0.1, 0.2, -0.3]), np.array([1.0, 0.0, 0.0]), S),
+        PointGoal(2, np.zeros(3), np.array([0.0, 1.0, 0.5]), 2.0 * S),
+        Force(1, np.array([0.0, 0.0, -0.2]), np.array([0.0, 0.0, -9.81])),
+    ]
+    targets = exp_so3(rng.normal(size=(2, 3)))
+    springs = [OrientationGoal(1, targets[0], 4.0), OrientationGoal(2, targets[1], 4.0)]
+    for second_order in (False, True):
+        want = soft_energy_terms(3, p, R, goals + springs, second_order)
+        got = soft_energy_terms(3, p, R, pack_terms(goals) + orientation_goals([1, 2], targets, 4.0), second_order)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-13)
+    assert len(pack_terms(goals) + pack_terms(springs)) == 5
+    with pytest.raises(ArtrackError, match="unknown soft term"):
+        pack_terms([object()])
+
+
+def test_dense_and_sparse_solver_paths_agree():
+    """Small systems run on dense arrays with W as (L, 6, 6) blocks, large ones on scipy.sparse:
+    the same solve either way (the kinematic solve and the multipliers)."""
+    rng = np.random.default_rng(12)
+    n = 6
+    cons = _chain(n)
+    p, R = _random_poses(rng, n)
+    goals = [PointGoal(k, BONE, rng.normal(scale=0.4, size=3), np.eye(3) * 100.0) for k in range(n)]
+    dense = ConstraintSolver(n, cons)
+    sparse = ConstraintSolver(n, cons)
+    sparse._dense = False
+    assert dense._dense
+    a = dense.solve_kinematic(p, R, goals, max_iterations=100)
+    b = sparse.solve_kinematic(p, R, goals, max_iterations=100)
+    assert a.converged and b.converged
+    # (a link's spin about its bone is free of the point goals: compare the points, not R)
+    np.testing.assert_allclose(a.p, b.p, atol=1e-7)
+    np.testing.assert_allclose(a.R @ BONE, b.R @ BONE, atol=1e-7)
+    assert a.energy == pytest.approx(b.energy, rel=1e-9)
+    H = rng.normal(size=(n, 6, 6))
+    H = H @ np.swapaxes(H, 1, 2) + 0.5 * np.eye(6)
+    x = rng.normal(size=6 * n)
+    np.testing.assert_allclose(apply_block_diagonal(block_inverse(H, as_blocks=True), x), block_inverse(H) @ x)
+    _, J = assemble(cons, p, R)
+    _, Jd = assemble(cons, p, R, dense=True)
+    rhs = rng.normal(size=J.shape[0])
+    want = solve_multipliers(J, block_inverse(H), rhs, "dense")
+    got = solve_multipliers(Jd, block_inverse(H, as_blocks=True), rhs, "cg")
+    np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(want).max())

@@ -548,6 +548,14 @@ class BodyKinematics:
         )
         self.non_root_dofs = np.zeros(body.n_dof, bool)
         self.non_root_dofs[6:] = True
+        # theta_from_poses: the non-root links' dof columns, by joint kind (index into links[1:])
+        rest_links = list(enumerate(body.links[1:]))
+        self._ball = np.array([j for j, lk in rest_links if lk.joint == "ball"], int)
+        self._ball_dofs = np.array([np.arange(lk.dof_slice.start, lk.dof_slice.start + 3) for _, lk in rest_links
+                                    if lk.joint == "ball"], int).reshape(-1, 3)
+        self._hinge = np.array([j for j, lk in rest_links if lk.joint != "ball"], int)
+        self._hinge_dofs = np.array([lk.dof_slice.start for _, lk in rest_links if lk.joint != "ball"], int)
+        self._hinge_axes = np.array([lk.axis for _, lk in rest_links if lk.joint != "ball"], float).reshape(-1, 3)
 
     def solver(self, method: str = "cg") -> ConstraintSolver:
         """A ConstraintSolver over this body's links and joints."""
@@ -574,17 +582,16 @@ class BodyKinematics:
         theta = np.zeros(self.body.n_dof)
         theta[0:3] = p[0]
         theta[3:6] = log_so3(R[0])
-        k = self.parent[1:]
-        rel = np.swapaxes(R[k], 1, 2) @ R[1:]
-        w = log_so3(rel)
-        for j, lk in enumerate(self.body.links[1:]):
-            s = lk.dof_slice
-            if lk.joint == "ball":
-                theta[s] = w[j]
-            else:
-                Rr = rel[j]
-                vee = 0.5 * np.array([Rr[2, 1] - Rr[1, 2], Rr[0, 2] - Rr[2, 0], Rr[1, 0] - Rr[0, 1]])
-                theta[s.start] = math.atan2(float(vee @ lk.axis), 0.5 * (np.trace(Rr) - 1.0))
+        rel = np.swapaxes(R[self.parent[1:]], 1, 2) @ R[1:]
+        if self._ball.size:
+            theta[self._ball_dofs] = log_so3(rel[self._ball])
+        if self._hinge.size:  # the angle about the hinge axis
+            Rr = rel[self._hinge]
+            vee = 0.5 * np.stack(
+                [Rr[:, 2, 1] - Rr[:, 1, 2], Rr[:, 0, 2] - Rr[:, 2, 0], Rr[:, 1, 0] - Rr[:, 0, 1]], axis=1
+            )
+            cos = 0.5 * (np.trace(Rr, axis1=1, axis2=2) - 1.0)
+            theta[self._hinge_dofs] = np.arctan2(np.einsum("ni,ni->n", vee, self._hinge_axes), cos)
         return theta
 
     def blob_points(self, p: np.ndarray, R: np.ndarray) -> np.ndarray:
