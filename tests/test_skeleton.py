@@ -14,6 +14,7 @@ import yaml
 from artrack.body_model import load_body_model
 from artrack.cameras import Camera
 from artrack.config import config_dir
+from artrack.constraints import assemble, soft_energy_terms
 from artrack.errors import InputError
 from artrack.lie import exp_se3, inverse_se3
 from artrack.motion import pose_at
@@ -933,6 +934,35 @@ def test_kinematic_filters_warm_up_on_the_raw_trackers_estimate(body, cameras):
     assert make_estimator("dynamic", body, cameras, None).raw is None
     with pytest.raises(InputError, match="kinematic.fit_source"):
         make_estimator("kinematic", body, cameras, {"kinematic": {"fit_source": "bogus"}})
+
+
+def test_kinematic_link_covariance_is_the_constrained_inverse(body, cameras):
+    """The links' published covariance (N (Nᵀ H N)⁻¹ Nᵀ, N a null-space basis of the joints'
+    Jacobian) equals the top-left block of the inverse KKT matrix [[H, Jᵀ], [J, 0]]⁻¹ of the
+    same soft-term information H: an independent formula for the same constrained inverse."""
+    est = make_estimator("kinematic", body, cameras, {"kinematic": {"warmup_frames": 2}})
+    rng = np.random.default_rng(5)
+    for k in range(4):
+        est.update(stamp(k), blobs_2d(body, cameras, pose_at("default", 1.0 + k / FPS, body), rng, 1.0))
+    kin = est.kin
+    B = len(kin.blob_labels)
+    _, terms = est._soft_terms(
+        est.blob_kf.position, est.blob_kf.position_cov(), est.link_kf.x[:, :3], est.link_kf.position_cov(),
+        est.R,
+    )
+    got = est._link_covariance(est.p, est.R, terms)
+    _, K, _ = soft_energy_terms(kin.n_links, est.p, est.R, terms(est.p, est.R))
+    n = 6 * kin.n_links
+    H = np.zeros((n, n))
+    for i in range(kin.n_links):
+        H[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = K[i] + 1e-6 * np.eye(6)
+    J = assemble(kin.constraints, est.p, est.R)[1].toarray()
+    m = J.shape[0]
+    kkt = np.block([[H, J.T], [J, np.zeros((m, m))]])
+    C = np.linalg.inv(kkt)[:n, :n]
+    want = np.array([C[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(kin.n_links)])
+    assert B > 0 and got.shape == (kin.n_links, 6, 6)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
 
 
 def test_kinematic_filters_restart_with_the_raw_trackers_new_track(body, cameras):

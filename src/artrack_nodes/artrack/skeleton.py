@@ -2125,8 +2125,11 @@ class KinematicEstimator(_Estimator):
         H = np.zeros((6 * self.kin.n_links,) * 2)
         for i in range(self.kin.n_links):
             H[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = K[i] + 1e-6 * np.eye(6)
-        J = assemble(self.kin.constraints, p, R)[1].toarray()
-        N = null_space(J)
+        J = assemble(self.kin.constraints, p, R, dense=True)[1]
+        # N from a complete QR of Jᵀ (independent joint rows: the body's tree), the SVD otherwise
+        Q, Rq = np.linalg.qr(J.T, mode="complete")
+        d = np.abs(np.diag(Rq))
+        N = Q[:, J.shape[0] :] if d.size and d.min() > 1e-10 * d.max() else null_space(J)
         C = N @ np.linalg.solve(N.T @ H @ N, N.T)
         return np.array([C[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(self.kin.n_links)])
 
