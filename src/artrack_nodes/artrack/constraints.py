@@ -24,7 +24,9 @@ Virtual work (paper Eq. 1–5): with applied forces Q and constraint forces
 
 which is assembled as scipy.sparse matrices (W block-diagonal, J with
 O(L) non-zeros) and solved by conjugate gradients (or BiCG, as in the
-paper; "dense" for testing).
+paper; "dense" for testing). A body's system (tens of rows) is assembled
+on dense arrays with W kept as its (L, 6, 6) blocks: the same arithmetic
+and the same Krylov solver, without scipy.sparse's per-call overhead.
 
 Two integrators share that equation:
 
