@@ -960,6 +960,7 @@ class ConstraintSolver:
                 rho = 2.0 * float(np.max(np.abs(lam))) if lam.size else 0.0
                 merit = energy + rho * float(np.sum(np.abs(c)))
                 p_t, R_t = retract(p, R, nu)
+                newton_t = second_order and float(np.max(np.abs(nu))) < newton_radius  # (if accepted)
                 # the second-order correction on the first trial only: on a damped retry (larger mu)
                 # it was never what got accepted (seed 3: 0 of ~1100 retries), and costs a projection
                 for correction in self._corrections if trial == 0 else self._corrections[:1]:
@@ -971,7 +972,8 @@ class ConstraintSolver:
                     # Pose-dependent terms are re-evaluated at the trial pose, so the merit is one
                     # function of q (its gradient is only approximated by the lagged terms).
                     trial_terms = terms(p_t, R_t) if callable(terms) else terms
-                    E_t = soft_energy_terms(self.n_links, p_t, R_t, trial_terms)[2]
+                    # (the next iteration's forces and stiffness, kept if the step is accepted)
+                    Q_t, K_t, E_t = soft_energy_terms(self.n_links, p_t, R_t, trial_terms, newton_t)
                     c_t = self.residual(p_t, R_t) if self.n_rows else c
                     merit_t = E_t + rho * float(np.sum(np.abs(c_t)))
                     if merit_t <= merit + 1e-12 * (1.0 + abs(merit)):
@@ -986,9 +988,7 @@ class ConstraintSolver:
             if not accepted:
                 break
             p, R = p_t, R_t
-            newton = second_order and float(np.max(np.abs(nu))) < newton_radius
-            current = trial_terms
-            Qf, K, energy = soft_energy_terms(self.n_links, p, R, current, newton)
+            newton, Qf, K, energy = newton_t, Q_t, K_t, E_t
             c, J = self._assemble(p, R)
             if float(np.max(np.abs(nu))) < step_tol:
                 break
