@@ -493,7 +493,10 @@ class PackedTerms:
     force_force: np.ndarray
 
     def __add__(self, other: PackedTerms) -> PackedTerms:
-        return PackedTerms(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__))
+        def join(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            return a if not b.size else b if not a.size else np.concatenate([a, b])
+
+        return PackedTerms(*(join(getattr(self, f), getattr(other, f)) for f in self.__dataclass_fields__))
 
     def __len__(self) -> int:
         return self.goal_link.size + self.orient_link.size + self.force_link.size

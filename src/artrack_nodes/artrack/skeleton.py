@@ -581,10 +581,11 @@ class BodyKinematics:
         non-root positions are implied by the joints). Not clipped to the limits."""
         theta = np.zeros(self.body.n_dof)
         theta[0:3] = p[0]
-        theta[3:6] = log_so3(R[0])
         rel = np.swapaxes(R[self.parent[1:]], 1, 2) @ R[1:]
+        w = log_so3(np.concatenate([R[:1], rel[self._ball]]))  # the root's rotation, then the balls'
+        theta[3:6] = w[0]
         if self._ball.size:
-            theta[self._ball_dofs] = log_so3(rel[self._ball])
+            theta[self._ball_dofs] = w[1:]
         if self._hinge.size:  # the angle about the hinge axis
             Rr = rel[self._hinge]
             vee = 0.5 * np.stack(
@@ -2090,6 +2091,10 @@ class KinematicEstimator(_Estimator):
         rest_S = k.rest_weight / self.rest_sigma_link**2
         limit_S = 1.0 / k.limit_sigma_rad**2
         rest_links = np.flatnonzero(rest_S[1:] > 0) + 1
+        link_of_dof = np.zeros(self.body.n_dof, int)
+        for i, lk in enumerate(self.body.links):
+            link_of_dof[lk.dof_slice] = i
+        limited = link_of_dof > 0  # (the root has no joint limit spring)
 
         def all_terms(p, R):
             # rest pose relative to the parent, then a joint-limit spring on each link out of its limits
@@ -2098,11 +2103,7 @@ class KinematicEstimator(_Estimator):
             )
             theta = self.kin.theta_from_poses(p, R)
             clipped = np.clip(theta, lo, hi)
-            outside = [
-                i
-                for i, lk in enumerate(self.body.links)
-                if i > 0 and np.any(clipped[lk.dof_slice] != theta[lk.dof_slice])
-            ]
+            outside = np.unique(link_of_dof[(clipped != theta) & limited]).tolist()
             if outside:
                 targets = [
                     R[parent[i]] @ self.kin.local_rotation(i, clipped[self.body.links[i].dof_slice]) for i in outside
