@@ -70,7 +70,7 @@ STAGES = [  # (timing key, column) in pipeline order
     ("blobs_2d.background", "bg"), ("blobs_2d.classification", "classify"), ("blobs_2d.statistics", "stats"),
     ("skeleton_3d.triangulation", "3-D"), ("skeleton_3d.outlier_fit", "outl.fit"),
     ("skeleton_3d.kalman", "kalman"), ("skeleton_3d.constraints", "constr."), ("skeleton_3d.pose", "pose"),
-    ("projection", "proj"),
+    ("skeleton_3d.prediction", "predict"), ("projection", "proj"),
 ]
 
 

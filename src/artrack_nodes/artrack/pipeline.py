@@ -119,12 +119,15 @@ class SkeletonStage:
     def __init__(self, body: BodyModel, cameras: list[Camera], config: PipelineConfig):
         self.estimator = make_estimator(config.estimator, body, cameras, config.skeleton)
         self.clock = FrameClock(config.fps)
+        self.prediction_ms = 0.0  # the last step's prediction, ms
 
     def step(self, stamp_ns: int, blobs_by_camera: Mapping[str, list[Blob2D]],
              edges: LinkEdgeStatistics | None = None) -> tuple[BodyEstimate, BodyEstimate]:
         ordered = {name: blobs_by_camera[name] for name in sorted(blobs_by_camera)}
         estimate = self.estimator.update(stamp_ns, ordered, edges)
+        t0 = time.perf_counter()
         prediction = self.estimator.predict(self.clock.next_stamp(stamp_ns))
+        self.prediction_ms = (time.perf_counter() - t0) * 1e3  # (the kinematic one runs the solver)
         return estimate, prediction
 
 
@@ -228,6 +231,7 @@ class ClosedLoopPipeline:
                 timings[f"blobs_2d.{k}"] = timings.get(f"blobs_2d.{k}", 0.0) + v
         for k, v in self.skeleton.estimator.timings_ms.items():
             timings[f"skeleton_3d.{k}"] = v
+        timings["skeleton_3d.prediction"] = self.skeleton.prediction_ms
         return FrameResult(stamp_ns, blobs, estimate, prediction, used, self.priors, timings)
 
     def _feed_back(self, prediction: BodyEstimate) -> None:
