@@ -340,5 +340,7 @@ def test_dense_and_sparse_solver_paths_agree():
     _, Jd = assemble(cons, p, R, dense=True)
     rhs = rng.normal(size=J.shape[0])
     want = solve_multipliers(J, block_inverse(H), rhs, "dense")
-    got = solve_multipliers(Jd, block_inverse(H, as_blocks=True), rhs, "cg")
-    np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(want).max())
+    blocks, sparse_W = block_inverse(H, as_blocks=True), block_inverse(H)
+    for J_k, W_k in ((Jd, blocks), (Jd, sparse_W), (J, blocks)):
+        got = solve_multipliers(J_k, W_k, rhs, "cg")  # dense or sparse J, W sparse or as blocks
+        np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(want).max())
