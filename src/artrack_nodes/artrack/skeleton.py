@@ -549,13 +549,13 @@ class BodyKinematics:
         self.non_root_dofs = np.zeros(body.n_dof, bool)
         self.non_root_dofs[6:] = True
         # theta_from_poses: the non-root links' dof columns, by joint kind (index into links[1:])
-        rest_links = list(enumerate(body.links[1:]))
-        self._ball = np.array([j for j, lk in rest_links if lk.joint == "ball"], int)
-        self._ball_dofs = np.array([np.arange(lk.dof_slice.start, lk.dof_slice.start + 3) for _, lk in rest_links
+        non_root = list(enumerate(body.links[1:]))
+        self._ball = np.array([j for j, lk in non_root if lk.joint == "ball"], int)
+        self._ball_dofs = np.array([np.arange(lk.dof_slice.start, lk.dof_slice.start + 3) for _, lk in non_root
                                     if lk.joint == "ball"], int).reshape(-1, 3)
-        self._hinge = np.array([j for j, lk in rest_links if lk.joint != "ball"], int)
-        self._hinge_dofs = np.array([lk.dof_slice.start for _, lk in rest_links if lk.joint != "ball"], int)
-        self._hinge_axes = np.array([lk.axis for _, lk in rest_links if lk.joint != "ball"], float).reshape(-1, 3)
+        self._hinge = np.array([j for j, lk in non_root if lk.joint != "ball"], int)
+        self._hinge_dofs = np.array([lk.dof_slice.start for _, lk in non_root if lk.joint != "ball"], int)
+        self._hinge_axes = np.array([lk.axis for _, lk in non_root if lk.joint != "ball"], float).reshape(-1, 3)
 
     def solver(self, method: str = "cg") -> ConstraintSolver:
         """A ConstraintSolver over this body's links and joints."""
