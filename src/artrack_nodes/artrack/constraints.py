@@ -798,7 +798,7 @@ class ConstraintSolver:
         self.n_rows = sum(c.n_rows for c in self.constraints)
         #: small systems (a body) are assembled as dense arrays and W kept as its (L, 6, 6)
         #: blocks: the same arithmetic without scipy.sparse's per-call overhead
-        self._dense = self.n_rows <= _DENSE_OPERATOR_ROWS
+        self._dense = self.n_rows <= _DENSE_OPERATOR_ROWS and self.n_links <= _DENSE_OPERATOR_ROWS
 
     # -- pieces -------------------------------------------------------------
     def _check(self, p: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
