@@ -548,6 +548,9 @@ class BodyKinematics:
         )
         self.non_root_dofs = np.zeros(body.n_dof, bool)
         self.non_root_dofs[6:] = True
+        self.link_of_dof = np.zeros(body.n_dof, int)  # (n_dof,) the link each dof belongs to
+        for i, lk in enumerate(body.links):
+            self.link_of_dof[lk.dof_slice] = i
         # theta_from_poses: the non-root links' dof columns, by joint kind (index into links[1:])
         non_root = list(enumerate(body.links[1:]))
         self._ball = np.array([j for j, lk in non_root if lk.joint == "ball"], int)
@@ -2091,10 +2094,6 @@ class KinematicEstimator(_Estimator):
         rest_S = k.rest_weight / self.rest_sigma_link**2
         limit_S = 1.0 / k.limit_sigma_rad**2
         rest_links = np.flatnonzero(rest_S[1:] > 0) + 1
-        link_of_dof = np.zeros(self.body.n_dof, int)
-        for i, lk in enumerate(self.body.links):
-            link_of_dof[lk.dof_slice] = i
-        limited = link_of_dof > 0  # (the root has no joint limit spring)
 
         def all_terms(p, R):
             # rest pose relative to the parent, then a joint-limit spring on each link out of its limits
@@ -2103,7 +2102,8 @@ class KinematicEstimator(_Estimator):
             )
             theta = self.kin.theta_from_poses(p, R)
             clipped = np.clip(theta, lo, hi)
-            outside = np.unique(link_of_dof[(clipped != theta) & limited]).tolist()
+            # (the root has no joint limit spring)
+            outside = np.unique(self.kin.link_of_dof[(clipped != theta) & self.kin.non_root_dofs]).tolist()
             if outside:
                 targets = [
                     R[parent[i]] @ self.kin.local_rotation(i, clipped[self.body.links[i].dof_slice]) for i in outside
