@@ -31,6 +31,7 @@ from artrack.skeleton import (
     load_skeleton_config,
     make_estimator,
 )
+from artrack.triangulation import associate_views
 from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING, Blob2D
 
 FPS = 30.0
@@ -934,6 +935,39 @@ def test_kinematic_filters_warm_up_on_the_raw_trackers_estimate(body, cameras):
     assert make_estimator("dynamic", body, cameras, None).raw is None
     with pytest.raises(InputError, match="kinematic.fit_source"):
         make_estimator("kinematic", body, cameras, {"kinematic": {"fit_source": "bogus"}})
+
+
+def test_kinematic_reuses_the_raw_trackers_view_association_of_the_same_blobs(body, cameras):
+    """The view association (``measurement.view_association``) is a function of the labelled 2-D
+    blobs alone: the kinematic estimator takes the raw tracker's of the same frame when the raw
+    tracker ran it on the very same blob objects, and runs its own on any other input (here: the
+    raw tracker's ``fit.overlap_parts`` screen left leg pairs out). Either way it equals
+    associate_views of its input (one camera holds the shins the wrong way round)."""
+    wrong = cameras[1].name
+    exchange = {"l_shin": "r_shin", "r_shin": "l_shin"}
+    for overlap_parts in ([], ["thigh", "shin"]):
+        est = make_estimator("kinematic", body, cameras, {"fit": {"overlap_parts": overlap_parts}})
+        m = est.cfg.measurement
+        assert "shin" in m.view_association
+        rng = np.random.default_rng(7)
+        checked = exchanged = 0
+        for k in range(4):
+            blobs = blobs_2d(body, cameras, pose_at("default", 1.0 + k / FPS, body), rng, 1.0)
+            blobs[wrong] = [dataclasses.replace(b, label=exchange.get(b.label, b.label)) for b in blobs[wrong]]
+            est._association = None
+            est.update(stamp(k), blobs)
+            if est._association is None:  # (a track's first frame: the filters start at the raw tracker's pose)
+                continue
+            seen, (out, swaps) = est._association
+            # the raw tracker's answer when its screen dropped nothing (it drops legs in every frame here)
+            assert (est._association[1] is est.raw._association[1]) == (not est.raw.overlap_drops), k
+            want, want_swaps = associate_views(seen, est.cameras, m.view_association, m.view_association_margin_chi2)
+            assert swaps == want_swaps and set(swaps) <= {wrong}, k
+            labels = {c: [b.label for b in bl] for c, bl in out.items()}
+            assert labels == {c: [b.label for b in bl] for c, bl in want.items()}, k
+            checked += 1
+            exchanged += bool(swaps)
+        assert checked == 3 and exchanged >= 2 and bool(est.raw.overlap_drops) == bool(overlap_parts)
 
 
 def test_kinematic_link_covariance_is_the_constrained_inverse(body, cameras):

@@ -14,6 +14,7 @@ from artrack.triangulation import (
     blob_extent,
     drop_overlapping_pairs,
     midpoint,
+    midpoints,
     triangulate_blob,
     triangulate_blobs,
 )
@@ -58,6 +59,25 @@ def test_midpoint_of_intersecting_rays():
     P, spread = midpoint(origins, dirs)
     np.testing.assert_allclose(P, X, atol=1e-12)
     assert spread > 0.1
+
+
+def test_midpoints_of_many_bundles_equal_one_at_a_time():
+    """The batched ray midpoints (the view association's hypotheses at once) are bit for bit
+    :func:`midpoint` of each bundle, parallel bundles (least-squares fallback) included."""
+    rng = np.random.default_rng(4)
+    origins = rng.uniform(-3.0, 3.0, (7, 4, 3))
+    dirs = rng.normal(size=(7, 4, 3))
+    dirs[2] = dirs[2, 0]  # four parallel rays: no spread
+    dirs /= np.linalg.norm(dirs, axis=2, keepdims=True)
+    X, spread = midpoints(origins, dirs)
+    for p in range(7):
+        Xp, sp = midpoint(origins[p], dirs[p])
+        assert np.array_equal(X[p], Xp) and spread[p] == sp
+        if p != 2:  # the normal equations written out
+            proj = [np.eye(3) - np.outer(d, d) for d in dirs[p]]
+            want = np.linalg.solve(sum(proj), sum(P @ o for P, o in zip(proj, origins[p], strict=True)))
+            np.testing.assert_allclose(X[p], want, atol=1e-9)
+    assert spread[2] < 1e-12 and np.all(np.delete(spread, 2) > 1e-3)
 
 
 def test_exact_recovery_without_noise():

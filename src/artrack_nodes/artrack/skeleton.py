@@ -1131,6 +1131,8 @@ class _Estimator:
         self._reacquire_chain = {lab: self._chain_below_blob(lab) for lab in t.reacquire_labels}
         #: {camera: [parts]} whose l_/r_ labels the last frame's view association exchanged
         self.view_swaps: dict[str, list[str]] = {}
+        #: the last view association: (its input {camera: [Blob2D]}, its output), for _associate
+        self._association: tuple[dict, dict] | None = None
         self.overlap_drops: dict[str, list[str]] = {}  # {camera: [parts left out there]} of the last frame
         pr = self.cfg.prior
         unknown = sorted(set(pr.rest_sigma_by_link) - set(body.link_names))
@@ -1277,13 +1279,21 @@ class _Estimator:
         m = self.cfg.measurement
         labelled = self._screen_views(labelled)  # before the association
         if m.view_association:
-            labelled, self.view_swaps = associate_views(labelled, self.cameras, m.view_association,
-                                                        m.view_association_margin_chi2)
+            labelled, self.view_swaps = self._associate(labelled)
         obs = triangulate_blobs(labelled, self.cameras, priors)
         return {k: v for k, v in obs.items() if k in self.labels}
 
     def _triangulation_priors(self, stamp_ns: int) -> dict[str, Blob3D] | None:
         return None
+
+    def _associate(self, labelled: dict[str, list[Blob2D]]) -> tuple[dict[str, list[Blob2D]], dict[str, list[str]]]:
+        """:func:`associate_views` of this frame's labelled blobs (``measurement.view_association``);
+        remembered with its input (the blob objects themselves), so that an estimator run beside
+        this one on the very same blobs (:class:`KinematicEstimator`'s raw tracker) reuses it."""
+        m = self.cfg.measurement
+        out = associate_views(labelled, self.cameras, m.view_association, m.view_association_margin_chi2)
+        self._association = (labelled, out)
+        return out
 
     def _screen_views(self, labelled: dict[str, list[Blob2D]]) -> dict[str, list[Blob2D]]:
         """The labelled 2-D blobs per camera that go on to the view association and the
@@ -2143,6 +2153,20 @@ class KinematicEstimator(_Estimator):
             for b, lab in enumerate(self.kin.blob_labels)
         }
 
+    def _associate(self, labelled):
+        """As :meth:`_Estimator._associate`, reusing the raw tracker's association of this frame
+        when it ran on the very same blobs (it did, unless its ``fit.overlap_parts`` screen left a
+        pair out): the same function of the same input, computed once."""
+        if self.raw is not None and self.raw._association is not None:
+            seen, result = self.raw._association
+            if seen.keys() == labelled.keys() and all(
+                    len(seen[c]) == len(bl) and all(x is y for x, y in zip(seen[c], bl, strict=True))
+                    for c, bl in labelled.items()):
+                self._association = (labelled, result)
+                out, swaps = result
+                return {c: list(bl) for c, bl in out.items()}, {c: list(p) for c, p in swaps.items()}
+        return super()._associate(labelled)
+
     def _step(self, stamp_ns, obs):
         k = self.cfg.kinematic
         dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
@@ -2388,6 +2412,20 @@ class DynamicEstimator(KinematicEstimator):
             lab: Blob3D(lab, x[b] + v[b] * dt, self.blob_state_cov[b] + shape_cov[b])
             for b, lab in enumerate(self.kin.blob_labels)
         }
+
+    def _associate(self, labelled):
+        """As :meth:`_Estimator._associate`, reusing the raw tracker's association of this frame
+        when it ran on the very same blobs (it did, unless its ``fit.overlap_parts`` screen left a
+        pair out): the same function of the same input, computed once."""
+        if self.raw is not None and self.raw._association is not None:
+            seen, result = self.raw._association
+            if seen.keys() == labelled.keys() and all(
+                    len(seen[c]) == len(bl) and all(x is y for x, y in zip(seen[c], bl, strict=True))
+                    for c, bl in labelled.items()):
+                self._association = (labelled, result)
+                out, swaps = result
+                return {c: list(bl) for c, bl in out.items()}, {c: list(p) for c, p in swaps.items()}
+        return super()._associate(labelled)
 
     def _step(self, stamp_ns, obs):
         dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)

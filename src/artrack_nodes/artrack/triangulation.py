@@ -52,6 +52,7 @@ __all__ = [
     "associate_views",
     "blob_extent",
     "midpoint",
+    "midpoints",
     "triangulate_blob",
     "triangulate_blobs",
 ]
@@ -64,13 +65,14 @@ MAX_ASSOCIATION_VIEWS = 6
 _MIN_RAY_SPREAD = 1e-6
 
 
-def _information_2d(cov: np.ndarray) -> np.ndarray:
-    """Inverse of a 2-D covariance (px²) with eigenvalues floored at 1e-9 of the largest
-    (and 1e-12 px²), so that a degenerate blob does not make the system singular."""
-    cov = np.asarray(cov, dtype=float).reshape(2, 2)
-    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
-    w = np.maximum(w, max(1e-9 * float(np.max(np.abs(w))), 1e-12))
-    return (V / w) @ V.T
+def _information_2d(covs: np.ndarray) -> np.ndarray:
+    """Inverses (n, 2, 2) of 2-D covariances (n, 2, 2) px², each with its eigenvalues floored at
+    1e-9 of its largest (and 1e-12 px²), so that a degenerate blob does not make the system
+    singular. All at once: one batched eigendecomposition."""
+    covs = np.asarray(covs, dtype=float).reshape(-1, 2, 2)
+    w, V = np.linalg.eigh(0.5 * (covs + covs.swapaxes(1, 2)))
+    w = np.maximum(w, np.maximum(1e-9 * np.max(np.abs(w), axis=1), 1e-12)[:, None])
+    return (V / w[:, None, :]) @ V.swapaxes(1, 2)
 
 
 def midpoint(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, float]:
@@ -79,15 +81,25 @@ def midpoint(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, f
     origins: (N, 3) m; directions: (N, 3) unit. Returns the point (3,) m and the
     smallest eigenvalue of Σ (I - d dᵀ) (a ray-spread measure; ~0 for parallel rays).
     """
-    origins = np.asarray(origins, dtype=float).reshape(-1, 3)
-    directions = np.asarray(directions, dtype=float).reshape(-1, 3)
-    proj = np.eye(3)[None] - directions[:, :, None] * directions[:, None, :]  # (N, 3, 3)
-    A = proj.sum(axis=0)
-    b = np.einsum("nij,nj->i", proj, origins)
-    spread = float(np.linalg.eigvalsh(A)[0])
-    if spread < _MIN_RAY_SPREAD:
-        return np.linalg.lstsq(A, b, rcond=None)[0], spread
-    return np.linalg.solve(A, b), spread
+    X, spread = midpoints(np.asarray(origins, dtype=float).reshape(1, -1, 3),
+                          np.asarray(directions, dtype=float).reshape(1, -1, 3))
+    return X[0], float(spread[0])
+
+
+def midpoints(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`midpoint` of P bundles of N rays each, at once: origins and directions (P, N, 3).
+    Returns the points (P, 3) m and the ray spreads (P,)."""
+    proj = np.eye(3) - directions[..., :, None] * directions[..., None, :]  # (P, N, 3, 3)
+    A = proj.sum(axis=1)
+    b = np.einsum("pnij,pnj->pi", proj, origins)
+    spread = np.linalg.eigvalsh(A)[:, 0]
+    X = np.empty(b.shape)
+    ok = spread >= _MIN_RAY_SPREAD
+    if ok.any():
+        X[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+    for p in np.flatnonzero(~ok):
+        X[p] = np.linalg.lstsq(A[p], b[p], rcond=None)[0]
+    return X, spread
 
 
 def _gauss_newton(
@@ -192,12 +204,14 @@ def _finite(b: Blob2D) -> bool:
 def _set_up(
     obs: list[tuple[Camera, Blob2D]],
     dirs: np.ndarray,
+    infos: np.ndarray,
     prior: Blob3D | None,
     fuse_prior: bool,
 ) -> _Problem | None:
     """The Gauss–Newton problem of one blob (see :func:`triangulate_blob`): drop the views whose
     ray midpoint lies behind them, start at the midpoint (one usable direction: on the ray,
-    nearest the prior). obs: finite observations; dirs: (k, 3) their viewing rays."""
+    nearest the prior). obs: finite observations; dirs: (k, 3) their viewing rays; infos: (k, 2, 2)
+    their 2-D information (:func:`_information_2d`)."""
     label = obs[0][1].label if obs else (prior.label if prior is not None else "")
     if not obs:
         return None
@@ -215,7 +229,7 @@ def _set_up(
             keep = [i for i, (cam, _) in enumerate(obs) if float(cam.R[2] @ X0 + cam.t[2]) > 0.0]
             if len(keep) < len(obs):
                 obs = [obs[i] for i in keep]
-                origins, dirs = origins[keep], dirs[keep]
+                origins, dirs, infos = origins[keep], dirs[keep], infos[keep]
                 X0, spread = midpoint(origins, dirs) if len(obs) >= 2 else (None, 0.0)
         if X0 is not None and spread < _MIN_RAY_SPREAD:
             X0 = None
@@ -230,7 +244,6 @@ def _set_up(
         s = max(float(dirs[0] @ (prior_mean - origins[0])), 1e-3)
         X0 = origins[0] + s * dirs[0]
     uvs = np.array([np.asarray(b.mean, float).reshape(2) for _, b in obs])
-    infos = np.array([_information_2d(b.cov) for _, b in obs])
     return _Problem(label, [c for c, _ in obs], uvs, infos, X0,
                     prior_mean if use_prior else None, prior_info if use_prior else None)
 
@@ -296,7 +309,8 @@ def triangulate_blob(
     """
     obs = [(cam, b) for cam, b in observations if _finite(b)]
     dirs = np.array([cam.rays(np.asarray(b.mean, float).reshape(1, 2))[1][0] for cam, b in obs]).reshape(-1, 3)
-    problem = _set_up(obs, dirs, prior, fuse_prior)
+    infos = _information_2d(np.array([b.cov for _, b in obs]))
+    problem = _set_up(obs, dirs, infos, prior, fuse_prior)
     return None if problem is None else _solve([problem], iterations)[0]
 
 
@@ -327,7 +341,7 @@ def triangulate_blobs(
             old = views.get(cam_name)
             if old is None or b.pixel_count > old.pixel_count:
                 views[cam_name] = b
-    # Viewing rays: one undistortion per camera for all its (finite) blobs.
+    # Viewing rays: one undistortion per camera for all its (finite) blobs; their 2-D information at once.
     ray: dict[tuple[str, str], np.ndarray] = {}
     for name in cams:
         keys = [(label, name) for label, views in by_label.items() if name in views and _finite(views[name])]
@@ -335,11 +349,13 @@ def triangulate_blobs(
             uv = np.array([np.asarray(by_label[label][name].mean, float).reshape(2) for label, _ in keys])
             dirs = cams[name].rays(uv)[1]
             ray.update(zip(keys, dirs, strict=True))
+    info = dict(zip(ray, _information_2d(np.array([by_label[label][name].cov for label, name in ray])), strict=True))
     problems: list[_Problem] = []
     for label, views in by_label.items():
         obs = [(cams[name], b) for name, b in views.items() if (label, name) in ray]
         dirs = np.array([ray[(label, c.name)] for c, _ in obs]).reshape(-1, 3)
-        problem = _set_up(obs, dirs, priors.get(label) if priors else None, fuse_prior)
+        infos = np.array([info[(label, c.name)] for c, _ in obs]).reshape(-1, 2, 2)
+        problem = _set_up(obs, dirs, infos, priors.get(label) if priors else None, fuse_prior)
         if problem is not None:
             problems.append(problem)
     if not problems:
@@ -422,25 +438,32 @@ def associate_views(
         k = len(views)
         if not 2 <= k <= MAX_ASSOCIATION_VIEWS:
             continue
-        ray, uv, info = {}, {}, {}  # per (camera, blob index): viewing ray, mean, 2-D information
+        ray, uv = {}, {}  # per (camera, blob index): viewing ray, mean
         for name, *idx in views:
             keys = [(name, i) for i in idx]
             uv.update((key, np.asarray(out[name][key[1]].mean, float).reshape(2)) for key in keys)
             ray.update(zip(keys, cams[name].rays(np.array([uv[key] for key in keys]))[1], strict=True))
-            info.update((key, _information_2d(out[name][key[1]].cov)) for key in keys)
-        first, hypotheses = len(problems), []
+        info = dict(zip(ray, _information_2d(np.array([out[name][i].cov for name, i in ray])), strict=True))
+        used = [cams[name] for name, *_ in views]
+        centres = np.array([c.center for c in used])
+        # every hypothesis' two bundles (the left label's blobs, then the right's) at once
+        flips, bundles = [], []
         for h in range(2 ** (k - 1)):  # bit v-1 of h: exchange the pair in view v (view 0 fixed)
             flip = [v > 0 and bool(h >> (v - 1) & 1) for v in range(k)]
-            sides = []
-            for own, other in ((1, 2), (2, 1)):  # the left label's blobs, then the right's
-                keys = [(view[0], view[other] if f else view[own]) for view, f in zip(views, flip, strict=True)]
-                used = [cams[name] for name, _ in keys]
-                X0, spread = midpoint(np.array([c.center for c in used]), np.array([ray[key] for key in keys]))
-                if spread >= _MIN_RAY_SPREAD and all(float(c.R[2] @ X0 + c.t[2]) > 0.0 for c in used):
-                    sides.append(_Problem(f"{part}:{h}", used, np.array([uv[key] for key in keys]),
-                                          np.array([info[key] for key in keys]), X0, None, None))
-            if len(sides) == 2:  # both rays' bundles meet in front of their cameras
-                problems.extend(sides)
+            flips.append(flip)
+            for own, other in ((1, 2), (2, 1)):
+                bundles.append([(view[0], view[other] if f else view[own])
+                                for view, f in zip(views, flip, strict=True)])
+        X0s, spreads = midpoints(np.broadcast_to(centres, (len(bundles), k, 3)),
+                                 np.array([[ray[key] for key in keys] for keys in bundles]))
+        depth = X0s @ np.array([c.R[2] for c in used]).T + np.array([c.t[2] for c in used])  # (2H, k)
+        meet = (spreads >= _MIN_RAY_SPREAD) & np.all(depth > 0.0, axis=1)
+        first, hypotheses = len(problems), []
+        for h, flip in enumerate(flips):
+            if meet[2 * h] and meet[2 * h + 1]:  # both rays' bundles meet in front of their cameras
+                problems.extend(_Problem(f"{part}:{h}", used, np.array([uv[key] for key in bundles[j]]),
+                                         np.array([info[key] for key in bundles[j]]), X0s[j], None, None)
+                                for j in (2 * h, 2 * h + 1))
                 hypotheses.append(flip)
         if len(hypotheses) < 2 or any(hypotheses[0]):  # the labels as given must be among them
             del problems[first:]
