@@ -7,6 +7,7 @@ the ROS-free ``artrack`` package (docs/ARCHITECTURE.md).
 from __future__ import annotations
 
 import faulthandler
+import gc
 import os
 import signal
 import sys
@@ -179,6 +180,12 @@ def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, st
                 raise
         if rclpy.ok():
             rclpy.shutdown()
+        # Finalise what the teardown left (rclpy's executor tasks and futures, often in reference
+        # cycles) now, while the interpreter is whole: collected only at interpreter exit, a
+        # future's __del__ ran with its module globals already torn down and printed a traceback
+        # into the node's log (one CI run in stop 36). A future whose exception nobody fetched
+        # still says so here, in one line (rclpy's "The following exception was never retrieved").
+        gc.collect()
     return code
 
 
