@@ -231,6 +231,7 @@ class MeasurementConfig:
     blob_cov: str = "shape+state"
     view_association: list = field(default_factory=lambda: ["thigh", "shin"])
     view_association_margin_chi2: float = 4.0
+    view_outlier_chi2: float = 0.0
 
 
 @dataclass
@@ -479,6 +480,8 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
                          "(without the side prefix, e.g. [thigh, shin])")
     if out.measurement.view_association_margin_chi2 < 0:
         raise InputError("skeleton config: field 'measurement.view_association_margin_chi2' must be >= 0")
+    if not out.measurement.view_outlier_chi2 >= 0:
+        raise InputError("skeleton config: field 'measurement.view_outlier_chi2' must be >= 0 (0 = off)")
     parts = out.fit.overlap_parts
     if not isinstance(parts, list) or not all(isinstance(p, str) and p for p in parts):
         raise InputError("skeleton config: field 'fit.overlap_parts' must be a list of part names "
@@ -1280,7 +1283,7 @@ class _Estimator:
         labelled = self._screen_views(labelled)  # before the association
         if m.view_association:
             labelled, self.view_swaps = self._associate(labelled)
-        obs = triangulate_blobs(labelled, self.cameras, priors)
+        obs = triangulate_blobs(labelled, self.cameras, priors, view_outlier_chi2=m.view_outlier_chi2)
         return {k: v for k, v in obs.items() if k in self.labels}
 
     def _triangulation_priors(self, stamp_ns: int) -> dict[str, Blob3D] | None:

@@ -22,6 +22,11 @@ legs) can carry their l_/r_ labels the wrong way round in some views only; of th
 exchanging the pair per view, the one whose rays meet best (lowest weighted reprojection error)
 is taken before triangulating, so that no 3-D blob mixes both parts.
 
+Views that disagree (``view_outlier_chi2``, :func:`_drop_outlier_views`): a 2-D tracker whose
+label has moved onto something else in one view (a hand's class on a bare knee) drags the 3-D blob
+between the two. With three or more views such a view shows as the one whose removal lowers the
+weighted reprojection error most; it is left out while that drop exceeds the threshold.
+
 One view constrains only the ray (rank-2 information). Then a prior Blob3D
 (e.g. the skeleton's prediction) is required and fused as one more Gaussian in
 information form, so the depth along the ray comes from the prior; without a
@@ -270,10 +275,13 @@ def _run(problems: list[_Problem], iterations: int) -> tuple[np.ndarray, np.ndar
     return _gauss_newton(X0, list(cams.values()), uvs, infos, prior_mean, prior_info, iterations)
 
 
-def _solve(problems: list[_Problem], iterations: int) -> list[Blob3D | None]:
+def _solve(problems: list[_Problem], iterations: int, view_outlier_chi2: float = 0.0) -> list[Blob3D | None]:
     """:func:`_run`, each result turned into a Blob3D (None where the information matrix is
-    singular or not finite)."""
-    X, H, _ = _run(problems, iterations)
+    singular or not finite); with ``view_outlier_chi2`` > 0 after :func:`_drop_outlier_views`."""
+    X, H, cost = _run(problems, iterations)
+    if view_outlier_chi2 > 0:
+        problems = list(problems)
+        _drop_outlier_views(problems, X, H, cost, iterations, view_outlier_chi2)
     out: list[Blob3D | None] = []
     for b, pb in enumerate(problems):
         try:
@@ -287,6 +295,39 @@ def _solve(problems: list[_Problem], iterations: int) -> list[Blob3D | None]:
             continue
         out.append(Blob3D(pb.label, X[b].copy(), cov, tuple(c.name for c in pb.cameras)))
     return out
+
+
+def _drop_outlier_views(problems: list[_Problem], X: np.ndarray, H: np.ndarray, cost: np.ndarray,
+                        iterations: int, max_chi2: float) -> None:
+    """Leave out the views that disagree with the others (in place: ``problems`` and the results
+    X, H, cost of :func:`_run`). A blob seen in three or more views whose weighted reprojection
+    error is above ``max_chi2`` is solved again without each of its views in turn (all at once,
+    from its solution); the view whose removal lowers the error most goes if it lowers it by more
+    than ``max_chi2``, and the test repeats while three or more views remain. A 2-D tracker whose
+    label sits on the wrong thing in one view (a hand's class on a knee) otherwise drags the 3-D
+    blob between the two (this project's addition to ALGORITHMS.md §1, "3-D blobs")."""
+    while True:
+        tests = [b for b, pb in enumerate(problems) if len(pb.cameras) >= 3 and cost[b] > max_chi2]
+        if not tests:
+            return
+        subsets, owners = [], []
+        for b in tests:
+            pb = problems[b]
+            for v in range(len(pb.cameras)):
+                keep = [i for i in range(len(pb.cameras)) if i != v]
+                subsets.append(pb._replace(cameras=[pb.cameras[i] for i in keep], uvs=pb.uvs[keep],
+                                           infos=pb.infos[keep], start=X[b]))
+                owners.append(b)
+        Xs, Hs, cs = _run(subsets, iterations)
+        changed = False
+        for b in tests:
+            rows = [j for j, o in enumerate(owners) if o == b]
+            j = min(rows, key=lambda r: cs[r])
+            if cost[b] - cs[j] > max_chi2:
+                problems[b], X[b], H[b], cost[b] = subsets[j], Xs[j], Hs[j], cs[j]
+                changed = True
+        if not changed:
+            return
 
 
 def triangulate_blob(
@@ -320,6 +361,7 @@ def triangulate_blobs(
     priors: Mapping[str, Blob3D] | None = None,
     iterations: int = 5,
     fuse_prior: bool = False,
+    view_outlier_chi2: float = 0.0,
 ) -> dict[str, Blob3D]:
     """Triangulate every label seen in the cameras (as :func:`triangulate_blob` per label, with
     one undistortion per camera and the labels' Gauss–Newton steps run together).
@@ -360,7 +402,7 @@ def triangulate_blobs(
             problems.append(problem)
     if not problems:
         return {}
-    return {blob.label: blob for blob in _solve(problems, iterations) if blob is not None}
+    return {blob.label: blob for blob in _solve(problems, iterations, view_outlier_chi2) if blob is not None}
 
 
 def drop_overlapping_pairs(
