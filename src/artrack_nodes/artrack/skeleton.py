@@ -1822,7 +1822,9 @@ class BaselineEstimator(_Estimator):
         self.poses = (p, R)
 
     def _triangulation_priors(self, stamp_ns):
-        return {b.label: b for b in self._predict(stamp_ns).blobs}
+        # the prediction's blobs (_predict) without the rest of its BodyEstimate
+        theta, q = self._predicted_pose(stamp_ns)
+        return {b.label: b for b in self._blob_list(theta, self.blob_cov + q * np.eye(3))}
 
     def _mirror_hypotheses(self, obs: Mapping[str, Blob3D]) -> list[tuple[dict[str, Blob3D], np.ndarray, set]]:
         """This frame's blobs with the left and right blobs of each ``fit.mirror_groups`` group
@@ -1923,17 +1925,24 @@ class BaselineEstimator(_Estimator):
             float(self.quality),
         )
 
-    def _predict(self, stamp_ns):
+    def _predicted_pose(self, stamp_ns) -> tuple[np.ndarray, float]:
+        """(theta, q): the pose predicted for stamp_ns (the last one moved on by the smoothed dof
+        velocities, ``fit.predict_velocity_gain``) and the variance q (m²) its links and blobs gain
+        (``fit.predict_velocity_sigma``)."""
         dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
         q = (self.cfg.fit.predict_velocity_sigma * dt) ** 2
-        L = self.kin.n_links
-        link_cov = self.link_cov.copy()
-        link_cov[:, :3, :3] += q * np.eye(3)
-        zeros = np.zeros((L, 3))
         theta = self.theta
         gain = self.cfg.fit.predict_velocity_gain
         if gain > 0 and self._dof_velocity is not None:
             theta = np.clip(theta + gain * dt * self._dof_velocity, self.body.lower, self.body.upper)
+        return theta, q
+
+    def _predict(self, stamp_ns):
+        theta, q = self._predicted_pose(stamp_ns)
+        L = self.kin.n_links
+        link_cov = self.link_cov.copy()
+        link_cov[:, :3, :3] += q * np.eye(3)
+        zeros = np.zeros((L, 3))
         return BodyEstimate(
             int(stamp_ns),
             list(self.body.joint_names),
