@@ -2425,20 +2425,6 @@ class DynamicEstimator(KinematicEstimator):
             for b, lab in enumerate(self.kin.blob_labels)
         }
 
-    def _associate(self, labelled):
-        """As :meth:`_Estimator._associate`, reusing the raw tracker's association of this frame
-        when it ran on the very same blobs (it did, unless its ``fit.overlap_parts`` screen left a
-        pair out): the same function of the same input, computed once."""
-        if self.raw is not None and self.raw._association is not None:
-            seen, result = self.raw._association
-            if seen.keys() == labelled.keys() and all(
-                    len(seen[c]) == len(bl) and all(x is y for x, y in zip(seen[c], bl, strict=True))
-                    for c, bl in labelled.items()):
-                self._association = (labelled, result)
-                out, swaps = result
-                return {c: list(bl) for c, bl in out.items()}, {c: list(p) for c, p in swaps.items()}
-        return super()._associate(labelled)
-
     def _step(self, stamp_ns, obs):
         dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
         springs = self._observation_springs(obs)
