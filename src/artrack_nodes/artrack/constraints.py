@@ -295,7 +295,10 @@ class BallJoints(Constraint):
         return ra, rb
 
     def residual(self, p, R):
-        ra, rb = self._lever(R)
+        return self._residual(p, *self._lever(R))
+
+    def _residual(self, p, ra, rb):
+        """c from the lever arms (:meth:`_lever`): the two anchor points' difference."""
         return (p[self.link_b] + rb - p[self.link_a] - ra).ravel()
 
     def jacobian(self, p, R):
@@ -308,8 +311,7 @@ class BallJoints(Constraint):
         ra, rb = self._lever(R)
         Ja = -np.concatenate([self._eye, -skew(ra)], axis=2)
         Jb = np.concatenate([self._eye, -skew(rb)], axis=2)
-        residual = (p[self.link_b] + rb - p[self.link_a] - ra).ravel()
-        return residual, (self._rows, self._cols, np.concatenate([Ja.ravel(), Jb.ravel()]))
+        return self._residual(p, ra, rb), (self._rows, self._cols, np.concatenate([Ja.ravel(), Jb.ravel()]))
 
 
 class HingeAxes(Constraint):
@@ -371,7 +373,12 @@ class HingeAxes(Constraint):
 
     def residual(self, p, R):
         _, _, E, v, _, _, g = self._terms(R)
-        return np.einsum("nki,ni->nk", E, g[:, None] * v).ravel()
+        return self._residual(E, g[:, None] * v)
+
+    @staticmethod
+    def _residual(E, phi):
+        """c from :meth:`_terms`: the misalignment rotation vector phi (n, 3) on the two rows of E."""
+        return np.einsum("nki,ni->nk", E, phi).ravel()
 
     def jacobian(self, p, R):
         return _blocks_from_triplets(self.n_rows, *self.triplets(p, R))
@@ -400,8 +407,7 @@ class HingeAxes(Constraint):
             blocks.append(E @ Dphi)
         blocks[0] = blocks[0] + cross(E, phi[:, None, :])
         full = [np.concatenate([np.zeros((n, 2, 3)), b], axis=2) for b in blocks]
-        residual = np.einsum("nki,ni->nk", E, phi).ravel()
-        return residual, (self._rows, self._cols, np.concatenate([full[0].ravel(), full[1].ravel()]))
+        return self._residual(E, phi), (self._rows, self._cols, np.concatenate([full[0].ravel(), full[1].ravel()]))
 
 
 @dataclass
