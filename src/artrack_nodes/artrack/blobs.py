@@ -32,7 +32,10 @@ taken into the background once it has stayed unchanged for
 ``background_ghost_edge_ratio`` times stronger gradients in the background model
 than in the image (the outline of something that has left, not of something
 that is there) becomes background at once, unless it is in a tracked blob's support
-(a person standing still in front of a textured floor fails the edge test too).
+(a person standing still in front of a textured floor fails the edge test too). With
+``background_ghost_detached``, a support on a foreground region detached from the person
+(not the component holding the most labelled pixels) is tested all the same: a hand's label
+that settled on the ghost of the start position would otherwise keep it for good.
 From the first tracked frame on, the per-channel sigma is capped at
 ``background_max_sigma``: where the person stood in about half of the seed samples,
 the MAD is the spread between person and room (sigmas of 40-70 grey levels), and
@@ -177,6 +180,11 @@ class BlobTrackerConfig:
     #: ... and is a ghost (becomes background at once) when its silhouette edges are this many
     #: times stronger in the background model than in the image (0 = never)
     background_ghost_edge_ratio: float = 1.5
+    #: the labels whose support on a foreground region detached from the person (8-connected, gaps up
+    #: to ``connected_gap_px`` closed; not the component holding the most labelled pixels) is still
+    #: tested for being a ghost, like unexplained foreground (empty: every support is protected;
+    #: config/blob_features.yaml has the measurements)
+    background_ghost_detached: tuple[str, ...] = ("l_hand", "r_hand")
     #: Mahalanobis distance (sigmas, over B, G, R) to the background above which a pixel is foreground
     background_threshold: float = 5.0
     #: floor of the per-pixel, per-channel background sigma, grey levels
@@ -337,6 +345,10 @@ class BlobTrackerConfig:
             raise bad("skin_rg_correlation", "must be in [-0.95, 0.95]")
         if not isinstance(self.connected_to, str):
             raise bad("connected_to", "must be a label name or ''")
+        if not isinstance(self.background_ghost_detached, (list, tuple)) or not all(
+                isinstance(x, str) and x for x in self.background_ghost_detached):
+            raise bad("background_ghost_detached", "must be a list of label names")
+        self.background_ghost_detached = tuple(self.background_ghost_detached)
         non_negative = ("connected_gap_px", "skin_min_intensity", "startup_skin_max_fraction", "temporal_velocity",
                         "temporal_motion_px", "min_component_fraction", "background_ghost_edge_ratio",
                         "prior_confidence_inflation", "background_max_sigma", "max_prior_area_ratio")
@@ -527,7 +539,7 @@ class BackgroundModel:
         self.seed = []
 
     def update(self, image: np.ndarray, image_f: np.ndarray, background: np.ndarray,
-               unexplained: np.ndarray) -> None:
+               unexplained: np.ndarray, ghost_tested: np.ndarray | None = None) -> None:
         """Adapt the model after ``foreground`` (module docstring, "Background").
 
         image: (H, W, 3) uint8 and image_f its float32 copy; background: (H, W) bool pixels
@@ -535,7 +547,9 @@ class BackgroundModel:
         foreground pixels in no tracked blob's support (rate ``background_ghost_rate``; taken
         into the background at once after ``background_static_frames`` unchanged frames).
         Any unexplained foreground region unchanged for ``background_ghost_frames`` frames
-        that is a ghost (``_ghosts``) is taken into the background at once.
+        that is a ghost (``_ghosts``) is taken into the background at once; ``ghost_tested``:
+        (H, W) bool supports tested all the same (``background_ghost_detached``), by that
+        test alone (a still hand held away from the body is not "an object that stopped").
         """
         previous, self._previous = self._previous, image
         if not self.ready or self._diff2 is None:
@@ -572,7 +586,8 @@ class BackgroundModel:
         if cfg.background_ghost_frames > 0 and cfg.background_ghost_edge_ratio > 0:
             # a tracked blob's support is never a ghost: a person standing still in front of a
             # textured background (floor tiles) otherwise fails the edge-ratio test and is erased
-            candidates = (self.static >= cfg.background_ghost_frames) & unexplained
+            candidates = unexplained if ghost_tested is None else unexplained | ghost_tested
+            candidates = (self.static >= cfg.background_ghost_frames) & candidates
             if candidates.any():
                 absorb |= self._ghosts(candidates, ~background, image_f)
         if absorb.any():
@@ -682,6 +697,8 @@ class BlobTracker2D:
         self.config = config or BlobTrackerConfig()
         named = [("part_colours", part) for part in sorted(self.config.part_colours)]
         named += [("connected_to", self.config.connected_to)] if self.config.connected_to else []
+        named += [("background_ghost_detached", part) for part in self.config.background_ghost_detached]
+        self._ghost_detached_labels = frozenset(self.config.background_ghost_detached)
         for name, part in named:
             if part not in self.labels:
                 raise InputError(f"camera '{self.camera_name}': blob tracker config field '{name}' names "
@@ -806,7 +823,10 @@ class BlobTracker2D:
             self.mode = "tracking"
             blobs, explained = self._track(img, fg, models)
             self.background.cap_variance()
-        self.background.update(img, img_f, ~fg, fg & ~explained)
+        ghost_tested = None
+        if self.mode == "tracking" and self._ghost_detached_labels:
+            ghost_tested = self._detached_static_support(fg, explained)
+        self.background.update(img, img_f, ~fg, fg & ~explained, ghost_tested)
         t1 = time.perf_counter()
         track = self.timings_ms
         # per-stage wall time of this frame, ms: classification and statistics (set by _track),
@@ -998,6 +1018,36 @@ class BlobTracker2D:
         r = self.config.max_prior_area_ratio
         return (r > 0 and m.from_prior and self.colour_classes[self.labels[m.index]] == SKIN
                 and n > r * 4.0 * math.pi * math.sqrt(m.det))
+
+    def _detached_static_support(self, fg: np.ndarray, labelled: np.ndarray) -> np.ndarray:
+        """(H, W) bool: the pixels labelled with one of ``background_ghost_detached`` outside the
+        foreground component (8-connected, gaps up to ``connected_gap_px`` closed) that holds the
+        most labelled pixels (``labelled``: every label's), when any of them may reach
+        ``background_ghost_frames`` unchanged frames in this frame's update (else none: the
+        connected components are skipped).
+
+        A label that settled on a ghost of the start position (a hand's class on the floor where the
+        person stood while the background seeded) keeps that ghost as its support, and supports are
+        never taken into the background; detached from the person, it is a ghost candidate again
+        (``background_ghost_detached``; the edge test of ``BackgroundModel._ghosts`` still decides)."""
+        cfg, bg = self.config, self.background
+        none = np.zeros(fg.shape, bool)
+        if bg.static is None or cfg.background_ghost_frames <= 0:
+            return none
+        ids = [i for i, lab in enumerate(self.support_labels) if lab in self._ghost_detached_labels]
+        if not ids:
+            return none
+        tested = np.isin(self._support_work, ids)
+        if not (tested & (bg.static >= cfg.background_ghost_frames - 1)).any():  # counted up in update()
+            return none
+        mask = fg.view(np.uint8)
+        gap = int(round(cfg.connected_gap_px * self._scale()[0]))
+        if gap > 0:
+            mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1)))
+        n, comp = cv2.connectedComponents(mask, connectivity=8)
+        per = np.bincount(comp[labelled], minlength=n)
+        per[0] = 0
+        return tested & (comp != int(np.argmax(per)))
 
     def _keep_connected(self, fg: np.ndarray, models: list[_ClassModel], box: tuple[int, int, int, int],
                         cols: np.ndarray, rows: np.ndarray, lab: np.ndarray) -> None:
