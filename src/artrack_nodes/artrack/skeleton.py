@@ -967,6 +967,12 @@ def facing_agreement(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera],
 
 
 # =========================================================================== start-up
+def _same_blobs(a: Mapping[str, Sequence[Blob2D]], b: Mapping[str, Sequence[Blob2D]]) -> bool:
+    """Whether {camera: [Blob2D]} a and b hold the very same blob objects, camera by camera, in order."""
+    return a.keys() == b.keys() and all(
+        len(a[c]) == len(bl) and all(x is y for x, y in zip(a[c], bl, strict=True)) for c, bl in b.items())
+
+
 def _in_gate(blob: Blob2D, uv: np.ndarray, gate_sigma: float, gate_px: float) -> tuple[bool, float]:
     r = np.asarray(uv, float) - np.asarray(blob.mean, float)
     d_px = float(np.linalg.norm(r))
@@ -1136,6 +1142,9 @@ class _Estimator:
         self.view_swaps: dict[str, list[str]] = {}
         #: the last view association: (its input {camera: [Blob2D]}, its output), for _associate
         self._association: tuple[dict, dict] | None = None
+        #: the last triangulation: (its input {camera: [Blob2D]}, its output, the labels it triangulated
+        #: without the priors), for KinematicEstimator._triangulate_labelled
+        self._triangulation: tuple[dict, dict, set] | None = None
         self.overlap_drops: dict[str, list[str]] = {}  # {camera: [parts left out there]} of the last frame
         pr = self.cfg.prior
         unknown = sorted(set(pr.rest_sigma_by_link) - set(body.link_names))
@@ -1283,8 +1292,18 @@ class _Estimator:
         labelled = self._screen_views(labelled)  # before the association
         if m.view_association:
             labelled, self.view_swaps = self._associate(labelled)
-        obs = triangulate_blobs(labelled, self.cameras, priors, view_outlier_chi2=m.view_outlier_chi2)
+        obs = self._triangulate_labelled(labelled, priors)
         return {k: v for k, v in obs.items() if k in self.labels}
+
+    def _triangulate_labelled(self, labelled: dict[str, list[Blob2D]],
+                              priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
+        """:func:`triangulate_blobs` of the associated blobs; remembered with its input and the labels
+        that did not need ``priors`` (see :meth:`_associate`)."""
+        prior_free: set[str] = set()
+        obs = triangulate_blobs(labelled, self.cameras, priors,
+                                view_outlier_chi2=self.cfg.measurement.view_outlier_chi2, prior_free=prior_free)
+        self._triangulation = (labelled, obs, prior_free)
+        return obs
 
     def _triangulation_priors(self, stamp_ns: int) -> dict[str, Blob3D] | None:
         return None
@@ -2171,13 +2190,32 @@ class KinematicEstimator(_Estimator):
         pair out): the same function of the same input, computed once."""
         if self.raw is not None and self.raw._association is not None:
             seen, result = self.raw._association
-            if seen.keys() == labelled.keys() and all(
-                    len(seen[c]) == len(bl) and all(x is y for x, y in zip(seen[c], bl, strict=True))
-                    for c, bl in labelled.items()):
+            if _same_blobs(seen, labelled):
                 self._association = (labelled, result)
                 out, swaps = result
                 return {c: list(bl) for c, bl in out.items()}, {c: list(p) for c, p in swaps.items()}
         return super()._associate(labelled)
+
+    def _triangulate_labelled(self, labelled, priors):
+        """As :meth:`_Estimator._triangulate_labelled`; when the raw tracker triangulated the very
+        same associated blobs this frame, its results for the labels whose rays met (no prior used)
+        are taken as they are, and only the others are triangulated here, with this estimator's
+        priors: the same blobs as triangulating all of them again, in the same order (those others to
+        the last bits: solved in a smaller batch, the cameras' projections take another BLAS path)."""
+        raw = self.raw._triangulation if self.raw is not None else None
+        if raw is None or not _same_blobs(raw[0], labelled):
+            return super()._triangulate_labelled(labelled, priors)
+        _, raw_obs, prior_free = raw
+        rest = {c: [b for b in bl if b.label not in prior_free] for c, bl in labelled.items()}
+        own, own_free = {}, set()
+        if any(rest.values()):
+            own = super()._triangulate_labelled(rest, priors)
+            own_free = self._triangulation[2]
+        order = dict.fromkeys(b.label for bl in labelled.values() for b in bl)  # first appearance
+        obs = {lab: (raw_obs if lab in prior_free else own)[lab] for lab in order
+               if lab in (raw_obs if lab in prior_free else own)}
+        self._triangulation = (labelled, obs, prior_free | own_free)
+        return obs
 
     def _step(self, stamp_ns, obs):
         k = self.cfg.kinematic

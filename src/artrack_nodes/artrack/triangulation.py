@@ -362,6 +362,7 @@ def triangulate_blobs(
     iterations: int = 5,
     fuse_prior: bool = False,
     view_outlier_chi2: float = 0.0,
+    prior_free: set[str] | None = None,
 ) -> dict[str, Blob3D]:
     """Triangulate every label seen in the cameras (as :func:`triangulate_blob` per label, with
     one undistortion per camera and the labels' Gauss–Newton steps run together).
@@ -371,7 +372,8 @@ def triangulate_blobs(
     ``triangulate_blob``). If a camera reports a label twice, the blob with the most
     pixels is used. Returns {label: Blob3D} for the labels that could be
     triangulated, in order of first appearance. Raises InputError for a camera name
-    that is not among ``cameras``.
+    that is not among ``cameras``. ``prior_free``, when given, receives the labels whose
+    triangulation did not use ``priors`` (their rays met): the same with any other priors.
     """
     cams = dict(cameras) if isinstance(cameras, Mapping) else {c.name: c for c in cameras}
     by_label: dict[str, dict[str, Blob2D]] = {}
@@ -400,6 +402,8 @@ def triangulate_blobs(
         problem = _set_up(obs, dirs, infos, priors.get(label) if priors else None, fuse_prior)
         if problem is not None:
             problems.append(problem)
+            if prior_free is not None and problem.prior_mean is None:
+                prior_free.add(label)
     if not problems:
         return {}
     return {blob.label: blob for blob in _solve(problems, iterations, view_outlier_chi2) if blob is not None}
