@@ -966,13 +966,13 @@ def facing_agreement(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera],
     return None if direction is None else float(_forward_xy(world_from_link) @ direction)
 
 
-# =========================================================================== start-up
 def _same_blobs(a: Mapping[str, Sequence[Blob2D]], b: Mapping[str, Sequence[Blob2D]]) -> bool:
     """Whether {camera: [Blob2D]} a and b hold the very same blob objects, camera by camera, in order."""
     return a.keys() == b.keys() and all(
         len(a[c]) == len(bl) and all(x is y for x, y in zip(a[c], bl, strict=True)) for c, bl in b.items())
 
 
+# =========================================================================== start-up
 def _in_gate(blob: Blob2D, uv: np.ndarray, gate_sigma: float, gate_px: float) -> tuple[bool, float]:
     r = np.asarray(uv, float) - np.asarray(blob.mean, float)
     d_px = float(np.linalg.norm(r))
