@@ -991,8 +991,8 @@ def test_kinematic_takes_the_raw_trackers_triangulations_that_needed_no_prior(bo
         est.update(stamp(k), blobs)
         if est._triangulation is None or est.raw._triangulation is None:
             continue  # (a track's first frame: the filters start at the raw tracker's pose)
-        seen, got, free = est._triangulation
-        raw_seen, raw_obs, raw_free = est.raw._triangulation
+        seen, got, _ = est._triangulation
+        _, raw_obs, raw_free = est.raw._triangulation
         want = triangulate_blobs(seen, est.cameras, priors, view_outlier_chi2=est.cfg.measurement.view_outlier_chi2)
         assert list(got) == list(want), k
         for lab, blob in want.items():

@@ -1298,12 +1298,18 @@ class _Estimator:
     def _triangulate_labelled(self, labelled: dict[str, list[Blob2D]],
                               priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
         """:func:`triangulate_blobs` of the associated blobs; remembered with its input and the labels
-        that did not need ``priors`` (see :meth:`_associate`)."""
+        that did not need ``priors`` (for :class:`KinematicEstimator`, as :meth:`_associate`)."""
+        obs, prior_free = self._triangulation_of(labelled, priors)
+        self._triangulation = (labelled, obs, prior_free)
+        return obs
+
+    def _triangulation_of(self, labelled: dict[str, list[Blob2D]],
+                          priors: Mapping[str, Blob3D] | None) -> tuple[dict[str, Blob3D], set[str]]:
+        """(:func:`triangulate_blobs` of ``labelled``, the labels it triangulated without ``priors``)."""
         prior_free: set[str] = set()
         obs = triangulate_blobs(labelled, self.cameras, priors,
                                 view_outlier_chi2=self.cfg.measurement.view_outlier_chi2, prior_free=prior_free)
-        self._triangulation = (labelled, obs, prior_free)
-        return obs
+        return obs, prior_free
 
     def _triangulation_priors(self, stamp_ns: int) -> dict[str, Blob3D] | None:
         return None
@@ -2205,16 +2211,15 @@ class KinematicEstimator(_Estimator):
         raw = self.raw._triangulation if self.raw is not None else None
         if raw is None or not _same_blobs(raw[0], labelled):
             return super()._triangulate_labelled(labelled, priors)
-        _, raw_obs, prior_free = raw
-        rest = {c: [b for b in bl if b.label not in prior_free] for c, bl in labelled.items()}
-        own, own_free = {}, set()
-        if any(rest.values()):
-            own = super()._triangulate_labelled(rest, priors)
-            own_free = self._triangulation[2]
-        order = dict.fromkeys(b.label for bl in labelled.values() for b in bl)  # first appearance
-        obs = {lab: (raw_obs if lab in prior_free else own)[lab] for lab in order
-               if lab in (raw_obs if lab in prior_free else own)}
-        self._triangulation = (labelled, obs, prior_free | own_free)
+        _, raw_obs, raw_free = raw
+        rest = {c: [b for b in bl if b.label not in raw_free] for c, bl in labelled.items()}
+        own, own_free = self._triangulation_of(rest, priors) if any(rest.values()) else ({}, set())
+        obs = {}
+        for lab in dict.fromkeys(b.label for bl in labelled.values() for b in bl):  # first appearance
+            source = raw_obs if lab in raw_free else own
+            if lab in source:
+                obs[lab] = source[lab]
+        self._triangulation = (labelled, obs, raw_free | own_free)
         return obs
 
     def _step(self, stamp_ns, obs):
