@@ -122,6 +122,26 @@ def test_sparse_solution_equals_dense():
         np.testing.assert_allclose(lam, lam_dense, rtol=1e-7, atol=1e-9 * np.abs(lam_dense).max())
 
 
+def test_cg_through_the_bare_operators_gives_scipys_iterates_bit_for_bit():
+    """The dense path hands scipy's cg its matrix and identity preconditioner as operators whose
+    ``matvec`` is the bare product (speed only): the solution must be scipy's own on the ndarray."""
+    import scipy.sparse.linalg as spla
+
+    from artrack.constraints import _DenseSymmetricOperator, _IdentityOperator
+
+    rng = np.random.default_rng(8)
+    m = 54
+    Q = rng.normal(size=(m, m))
+    A = Q @ Q.T + 1e-2 * np.eye(m)
+    b = rng.normal(size=m)
+    want, info_want = spla.cg(A, b, rtol=1e-13, atol=0.0, maxiter=2000)
+    got, info_got = spla.cg(_DenseSymmetricOperator(A), b, rtol=1e-13, atol=0.0, maxiter=2000,
+                            M=_IdentityOperator(m, A.dtype))
+    assert info_want == info_got == 0
+    assert np.array_equal(got, want)
+    np.testing.assert_allclose(A @ got, b, atol=1e-9)
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_constraints_satisfied_from_random_starts(seed):
     rng = np.random.default_rng(10 + seed)

@@ -751,6 +751,23 @@ def test_analytic_and_numeric_jacobians_give_the_same_fit(body):
         fit_pose(body, start, targets, jacobian="exact")
 
 
+def test_whitener_of_a_stack_equals_one_per_matrix_bit_for_bit():
+    """fit_pose whitens its targets in one batched eigh; each U must be the single matrix's, and
+    C-contiguous (a strided U changes einsum's summation order, and so the fits' last bits)."""
+    from artrack.skeleton import _whitener
+
+    rng = np.random.default_rng(4)
+    X = rng.normal(size=(40, 3, 3))
+    info = X @ np.swapaxes(X, 1, 2)
+    info[3] = np.diag([4.0, 0.0, -1e-9])  # a singular one: the eigenvalues floored
+    U = _whitener(info)
+    assert U.flags.c_contiguous
+    for k in range(len(info)):
+        w, V = np.linalg.eigh(0.5 * (info[k] + info[k].T))
+        assert np.array_equal(U[k], (V * np.sqrt(np.maximum(w, 1e-12))).T)
+    np.testing.assert_allclose(np.swapaxes(U, 1, 2) @ U, info, atol=1e-6)
+
+
 def test_fit_pose_over_some_dofs_holds_the_others(body):
     """fit_pose(free_dofs=...): the held dofs stay at the start exactly; when the truth differs from
     the start only in the free dofs (the legs' hips and knees), the conditional fit reaches it; with

@@ -670,7 +670,7 @@ class LinkGoals:
         scaled by 1/sigma_px² (the edge measurement noise, px)."""
         use = np.flatnonzero(stats.measured & (stats.samples_found >= min_found))
         xi = stats.xi_hat()[use]
-        S = np.array([_whitener(stats.information[i] / sigma_px**2) for i in use]).reshape(-1, 6, 6)
+        S = _whitener(np.array([stats.information[i] / sigma_px**2 for i in use]).reshape(-1, 6, 6))
         return cls(use, inverse_se3(stats.reference[use]), xi, S)
 
 
@@ -716,9 +716,11 @@ class GroundContact:
 
 
 def _whitener(info: np.ndarray) -> np.ndarray:
-    """U with Uᵀ U = info (so ‖U e‖² = eᵀ info e); eigenvalues floored."""
-    w, V = np.linalg.eigh(0.5 * (info + info.T))
-    return (V * np.sqrt(np.maximum(w, 1e-12))).T
+    """U with Uᵀ U = info (so ‖U e‖² = eᵀ info e); eigenvalues floored. info: (n, n) or a stack
+    (..., n, n) of them (one batched ``eigh``)."""
+    info = np.asarray(info, float)
+    w, V = np.linalg.eigh(0.5 * (info + np.swapaxes(info, -1, -2)))
+    return np.ascontiguousarray(np.swapaxes(V * np.sqrt(np.maximum(w, 1e-12))[..., None, :], -1, -2))
 
 
 def fit_pose(
@@ -770,7 +772,7 @@ def fit_pose(
     links = np.array([t.link for t in targets], int)
     local = np.array([t.local for t in targets], float).reshape(-1, 3)
     y = np.array([t.y for t in targets], float).reshape(-1, 3)
-    U = np.array([_whitener(np.asarray(t.info, float)) for t in targets]).reshape(-1, 3, 3)
+    U = _whitener(np.array([t.info for t in targets], float).reshape(-1, 3, 3))
     jd = np.arange(6, body.n_dof)
     reg_w, reg_c = [], []
     rest_sigma = np.broadcast_to(np.asarray(rest_sigma, float), (body.n_dof,))[jd]
