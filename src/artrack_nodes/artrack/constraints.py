@@ -691,8 +691,8 @@ class _DenseSymmetricOperator(spla.LinearOperator):
 
     Speed only: scipy wraps an ndarray in an operator whose ``matvec`` checks and reshapes its
     argument on every call, and ``cg`` makes two such calls an iteration (the matrix and the identity
-    preconditioner), ~7 µs on a 54-row system against ~2 µs for the product itself. The products
-    are the same, so are the iterates (tested)."""
+    preconditioner): on a 54-row system ~1.3 µs of a ~6.8 µs iteration. The products are the same,
+    so are the iterates (tested)."""
 
     def __init__(self, A: np.ndarray):
         super().__init__(A.dtype, A.shape)
