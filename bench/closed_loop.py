@@ -42,6 +42,10 @@ tracker); wall-clock times vary with the machine load. Run from the repository r
     .venv/bin/python bench/closed_loop.py --scenes default --estimators baseline baseline+edges --feedback on \
         --seeds 1 2 3 4 5 6 --true-start 60      # blobs vs blobs + edges from a correct pose at frame 60
 
+``--empty-seed 1.5`` renders the same scenes with the room shown empty for their first 1.5 s
+(the person moves on unseen): the background then seeds without the ghost of the start
+position, which measures how much of a scene's error that ghost causes.
+
 A change is judged on many seeds, paired: save the JSON line of a run before it and pass it
 with ``--compare`` to the run after it (``artrack.evaluation.compare_paired``: per seed
 before -> after, means, medians, seeds better / worse by more than 1 mm, sign-test and Wilcoxon p)::
@@ -93,11 +97,13 @@ SETTLE_S = 2.0  # the paper's table "settled": scored from this long after the t
 
 def scene_bag(name: str, n_cameras: int, args, body) -> Path:
     """The cached bag of scene ``name`` (synthesised on first use)."""
+    blackout = getattr(args, "empty_seed", 0.0)
     cfg = SceneConfig(n_cameras=n_cameras, width=args.width, height=args.height, duration_s=args.duration,
-                      seed=args.seed, **SCENES[name])
+                      seed=args.seed, blackout=(0.0, blackout) if blackout > 0 else None, **SCENES[name])
     # (fewer than 4 cameras: the corners of the 4-camera ring since stop 27, "corners" in the name)
     rig = f"c{n_cameras}" + ("corners" if n_cameras < 4 else "")
-    path = Path(args.cache) / f"{name}_{rig}_s{args.seed}_{args.width}x{args.height}_{args.duration:g}s.mcap"
+    empty = f"_empty{blackout:g}s" if blackout > 0 else ""
+    path = Path(args.cache) / f"{name}_{rig}_s{args.seed}_{args.width}x{args.height}_{args.duration:g}s{empty}.mcap"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         frames = Progress(generate_scene(cfg, body), total=cfg.n_frames, label=f"synth {path.name}")
@@ -241,6 +247,10 @@ def main() -> int:
                     help="restart every run from the true pose at this frame index and score the frames from "
                          "there on: the loop's drift from a correct start, without the automatic start-up")
     ap.add_argument("--cache", default="/tmp/artrack_bench")
+    ap.add_argument("--empty-seed", type=float, default=0.0, metavar="S",
+                    help="diagnosis: every camera shows the empty room for the first S seconds (the person moves "
+                         "on unseen; ground truth kept), so the background seeds without a ghost of the start "
+                         "position (synth.SceneConfig.blackout; default 0: off)")
     ap.add_argument("--compare", metavar="JSON", default=None,
                     help="the JSON line (last line) of an earlier run: per-seed MPJPE before -> after, paired")
     args = ap.parse_args()
