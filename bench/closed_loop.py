@@ -254,6 +254,8 @@ def main() -> int:
     ap.add_argument("--compare", metavar="JSON", default=None,
                     help="the JSON line (last line) of an earlier run: per-seed MPJPE before -> after, paired")
     args = ap.parse_args()
+    if not args.empty_seed >= 0:
+        ap.error(f"--empty-seed must be >= 0 seconds, got {args.empty_seed}")
     before = load_rows(args.compare) if args.compare else None
     seeds = args.seeds or [args.seed]
     body = load_body_model()
