@@ -1040,14 +1040,19 @@ class BlobTracker2D:
         tested = np.isin(self._support_work, ids)
         if not (tested & (bg.static >= cfg.background_ghost_frames - 1)).any():  # counted up in update()
             return none
-        mask = fg.view(np.uint8)
-        gap = int(round(cfg.connected_gap_px * self._scale()[0]))
-        if gap > 0:
-            mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1)))
-        n, comp = cv2.connectedComponents(mask, connectivity=8)
+        n, comp = self._gap_closed_components(fg)
         per = np.bincount(comp[labelled], minlength=n)
         per[0] = 0
         return tested & (comp != int(np.argmax(per)))
+
+    def _gap_closed_components(self, mask: np.ndarray) -> tuple[int, np.ndarray]:
+        """(n, labels) of the 8-connected components of the C-contiguous bool ``mask`` after gaps up to
+        ``connected_gap_px`` (input px) are closed by dilation (cv2.connectedComponents; 0 = none)."""
+        m = mask.view(np.uint8)
+        gap = int(round(self.config.connected_gap_px * self._scale()[0]))
+        if gap > 0:
+            m = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1)))
+        return cv2.connectedComponents(m, connectivity=8)
 
     def _keep_connected(self, fg: np.ndarray, models: list[_ClassModel], box: tuple[int, int, int, int],
                         cols: np.ndarray, rows: np.ndarray, lab: np.ndarray) -> None:
@@ -1062,11 +1067,7 @@ class BlobTracker2D:
         if not on_anchor.any():
             return
         x0, y0, x1, y1 = box
-        mask = np.ascontiguousarray(fg[y0:y1, x0:x1]).view(np.uint8)
-        gap = int(round(cfg.connected_gap_px * self._scale()[0]))
-        if gap > 0:
-            mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1)))
-        n, comp = cv2.connectedComponents(mask, connectivity=8)
+        n, comp = self._gap_closed_components(np.ascontiguousarray(fg[y0:y1, x0:x1]))
         ids = comp[rows, cols]
         per = np.bincount(ids[on_anchor], minlength=n)
         keep = per >= 0.25 * per.max()

@@ -701,11 +701,7 @@ class _DenseSymmetricOperator(spla.LinearOperator):
     def _matvec(self, x: np.ndarray) -> np.ndarray:
         return self.A @ x
 
-    def _rmatvec(self, x: np.ndarray) -> np.ndarray:
-        return self.A @ x
-
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        return self.A @ x
+    _rmatvec = matvec = _matvec  # symmetric; matvec without LinearOperator's checks
 
 
 class _IdentityOperator(spla.LinearOperator):
@@ -718,11 +714,7 @@ class _IdentityOperator(spla.LinearOperator):
     def _matvec(self, x: np.ndarray) -> np.ndarray:
         return x
 
-    def _rmatvec(self, x: np.ndarray) -> np.ndarray:
-        return x
-
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        return x
+    _rmatvec = matvec = _matvec
 
 
 def solve_multipliers(
