@@ -58,7 +58,10 @@ cannot widen them. Gated learning cannot repair a model bootstrapped from the wr
 pixels (a start-up pose off the part: e.g. a shirt class learnt from a floor ghost
 rejects the shirt for good), so a learned class (not skin) is bootstrapped again from its
 labels' cores when the median colour of the foreground in those cores has been outside the
-model's ``colour_learn_gate`` for ``colour_relearn_frames`` frames in a row.
+model's ``colour_learn_gate`` for ``colour_relearn_frames`` frames in a row. A bootstrap leaves out
+the core pixels whose colour the room next to the person shows too (``colour_room_gate``): the
+ghost of the start position is the room seen again, and a start-up prior off the part has its
+core on it.
 Each foreground pixel inside a label's gate gets the MAP label
 
     Γ_ij = argmax_k  log N(c_ij; μ_c(k), Σ_c(k)) + w · log(c_k · N((u, v); m_k, S_k))
@@ -124,10 +127,12 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .errors import InputError
 from .types import VISIBLE, Blob2D, Prior2D
@@ -151,6 +156,8 @@ SKIN = "skin"
 
 _F32 = np.float32
 _GHOST_EVERY = 8  # frames between background updates at the ghost rate (amortised)
+_ROOM_SHARE = 0.002  # share of the room's colour samples near a core pixel that makes it room-coloured
+_ROOM_CORE_SHARE = 0.25  # room-coloured share of a class's core from which those pixels are left out
 _ONES13 = np.ones((1, 3), _F32)
 
 
@@ -228,6 +235,11 @@ class BlobTrackerConfig:
     #: (a model learnt from a ghost or a wrong start-up pose does not describe the part, and, gated as
     #: learning is, would never recover); 0 = never
     colour_relearn_frames: int = 15
+    #: a colour class is bootstrapped without the core pixels whose colour the room next to the person
+    #: shows too: at least 0.2 % of the background pixels around the labels' ROIs within this distance,
+    #: in units of (colour_min_sigma_chroma, colour_min_sigma_intensity) (the ghost of the start
+    #: position shows the room); 0 = off
+    colour_room_gate: float = 1.0
 
     # ---- class priors: feedback and temporal smoothness
     #: half-size of a label's region of interest, in sigmas of its spatial prior (also its spatial gate)
@@ -351,7 +363,8 @@ class BlobTrackerConfig:
         self.background_ghost_detached = tuple(self.background_ghost_detached)
         non_negative = ("connected_gap_px", "skin_min_intensity", "startup_skin_max_fraction", "temporal_velocity",
                         "temporal_motion_px", "min_component_fraction", "background_ghost_edge_ratio",
-                        "prior_confidence_inflation", "background_max_sigma", "max_prior_area_ratio")
+                        "prior_confidence_inflation", "background_max_sigma", "max_prior_area_ratio",
+                        "colour_room_gate")
         for name in non_negative:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
@@ -939,7 +952,7 @@ class BlobTracker2D:
             # colour class -> the colours (n, 3) of the foreground in its labels' cores (colour_core_sigma)
             core_fg = self._core_colours(models, [feat[sel][ds2 <= cfg.colour_core_sigma**2]
                                                   for sel, ds2 in zip(sels, ds2s)])
-            self._bootstrap_colours(core_fg)
+            self._bootstrap_colours(core_fg, lambda: self._room_colours(img, fg, (x0, y0, x1, y1)))
             dc2s = []
             for m, sel, ds2 in zip(models, sels, ds2s):
                 f = feat[sel]
@@ -1082,10 +1095,37 @@ class BlobTracker2D:
             parts.setdefault(self.colour_classes[self.labels[m.index]], []).append(f)
         return {cls: np.concatenate(p, axis=0) for cls, p in parts.items()}
 
-    def _bootstrap_colours(self, core_fg: dict[str, np.ndarray]) -> None:
+    def _room_colours(self, img: np.ndarray, fg: np.ndarray, rect: tuple[int, int, int, int]) -> np.ndarray:
+        """(n, 3) colour features of the background pixels (at most ~8000, evenly subsampled) in a
+        frame around ``rect`` (x0, y0, x1, y1, work px: the union of the labels' ROIs) as wide as
+        the rectangle on each side: the room next to the person. Not inside the ROIs, where a
+        person who covers their own seed-time ghost matches the model and is background."""
+        x0, y0, x1, y1 = rect
+        H, W = fg.shape
+        w, h = x1 - x0, y1 - y0
+        X0, Y0, X1, Y1 = max(0, x0 - w), max(0, y0 - h), min(W, x1 + w), min(H, y1 + h)
+        ring = ~fg[Y0:Y1, X0:X1]
+        ring[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0] = False
+        ys, xs = np.nonzero(ring)
+        step = max(1, ys.size // 4000)
+        return colour_features(img[ys[::step] + Y0, xs[::step] + X0])
+
+    def _bootstrap_colours(self, core_fg: dict[str, np.ndarray],
+                           room: Callable[[], np.ndarray] | None = None) -> None:
         """Give each colour class still on its broad start model (no configured default) a
         robust estimate from the foreground in its labels' cores (``core_fg``, see
-        ``_core_colours``): median, then mean/cov of the pixels within 3 robust sigmas of it."""
+        ``_core_colours``): median, then mean/cov of the pixels within 3 robust sigmas of it.
+
+        ``room``: returns the room's colours next to the person (``_room_colours``; called once,
+        when a class is bootstrapped). With ``colour_room_gate``, core pixels whose colour at least
+        0.2 % of those (and at least 3) lie near are left out first when they are a quarter of the
+        core or more (a smaller share is left to the robust trimming, which handles it, so that a
+        clean core gives the same model as without the test): where the person stood while
+        the background seeded, the foreground is the room seen again (the start position's ghost),
+        and a start-up prior off the part has its core on it (default scene, seeds 1-26: the shirt
+        or trousers class of 8 seeds learnt from the floor in one or two views). A class whose core
+        is all room-coloured waits for a later frame."""
+        room_tree = None
         for cls, core in sorted(core_fg.items()):
             model = self.colour_model(cls)
             if model.learned or cls == SKIN:
@@ -1095,6 +1135,18 @@ class BlobTracker2D:
                 continue
             cfg = self.config
             floor = np.array([cfg.colour_min_sigma_chroma] * 2 + [cfg.colour_min_sigma_intensity])
+            if room is not None and cfg.colour_room_gate > 0:
+                if room_tree is None:
+                    r = room() / floor
+                    room_tree = (cKDTree(r), r.shape[0])
+                tree, n = room_tree
+                if n:
+                    near = tree.query_ball_point(c / floor, cfg.colour_room_gate, return_length=True)
+                    part = near < max(3.0, _ROOM_SHARE * n)
+                    if np.count_nonzero(~part) >= _ROOM_CORE_SHARE * c.shape[0]:  # (fewer: left to the trimming)
+                        if np.count_nonzero(part) < self._min_pixels():
+                            continue
+                        c = c[part]
             med = np.median(c, axis=0)
             mad = 1.4826 * np.median(np.abs(c - med), axis=0)
             keep = np.all(np.abs(c - med) <= 3.0 * (mad + floor), axis=1)
