@@ -127,7 +127,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -638,6 +637,47 @@ class BackgroundModel:
         return out
 
 
+class _RoomColours:
+    """The room's colours next to the person in one frame (module docstring, "Blob classes"):
+    the background pixels (at most ~8000, evenly subsampled) in a frame around ``rect`` (x0, y0,
+    x1, y1, work px) as wide as the rectangle on each side, not inside it (there a person who
+    covers their own seed-time ghost matches the model and is background). Sampled on the first
+    :meth:`coloured` call only."""
+
+    def __init__(self, img: np.ndarray, fg: np.ndarray, rect: tuple[int, int, int, int],
+                 config: BlobTrackerConfig):
+        self.img, self.fg, self.rect, self.config = img, fg, rect, config
+        self._tree: tuple[cKDTree, int] | None = None
+
+    def _floor(self) -> np.ndarray:
+        cfg = self.config
+        return np.array([cfg.colour_min_sigma_chroma] * 2 + [cfg.colour_min_sigma_intensity])
+
+    def coloured(self, colours: np.ndarray) -> np.ndarray:
+        """(n,) bool: the colours (n, 3) that at least ``_ROOM_SHARE`` of the room's (and at least 3)
+        lie within ``colour_room_gate`` of (in units of the colour floors); all False when the
+        gate is 0 or no room is in view."""
+        gate = self.config.colour_room_gate
+        if gate <= 0 or not len(colours):
+            return np.zeros(len(colours), bool)
+        if self._tree is None:
+            x0, y0, x1, y1 = self.rect
+            H, W = self.fg.shape
+            w, h = x1 - x0, y1 - y0
+            X0, Y0, X1, Y1 = max(0, x0 - w), max(0, y0 - h), min(W, x1 + w), min(H, y1 + h)
+            ring = ~self.fg[Y0:Y1, X0:X1]
+            ring[max(0, y0 - Y0):max(0, y1 - Y0), max(0, x0 - X0):max(0, x1 - X0)] = False
+            ys, xs = np.nonzero(ring)
+            step = max(1, ys.size // 4000)
+            room = colour_features(self.img[ys[::step] + Y0, xs[::step] + X0]) / self._floor()
+            self._tree = (cKDTree(room), room.shape[0])
+        tree, n = self._tree
+        if n == 0:
+            return np.zeros(len(colours), bool)
+        near = tree.query_ball_point(np.asarray(colours, float) / self._floor(), gate, return_length=True)
+        return near >= max(3.0, _ROOM_SHARE * n)
+
+
 # =========================================================================== tracker
 @dataclass
 class _Track:
@@ -952,7 +992,7 @@ class BlobTracker2D:
             # colour class -> the colours (n, 3) of the foreground in its labels' cores (colour_core_sigma)
             core_fg = self._core_colours(models, [feat[sel][ds2 <= cfg.colour_core_sigma**2]
                                                   for sel, ds2 in zip(sels, ds2s)])
-            self._bootstrap_colours(core_fg, lambda: self._room_colours(img, fg, (x0, y0, x1, y1)))
+            self._bootstrap_colours(core_fg, _RoomColours(img, fg, (x0, y0, x1, y1), cfg))
             dc2s = []
             for m, sel, ds2 in zip(models, sels, ds2s):
                 f = feat[sel]
@@ -1095,37 +1135,19 @@ class BlobTracker2D:
             parts.setdefault(self.colour_classes[self.labels[m.index]], []).append(f)
         return {cls: np.concatenate(p, axis=0) for cls, p in parts.items()}
 
-    def _room_colours(self, img: np.ndarray, fg: np.ndarray, rect: tuple[int, int, int, int]) -> np.ndarray:
-        """(n, 3) colour features of the background pixels (at most ~8000, evenly subsampled) in a
-        frame around ``rect`` (x0, y0, x1, y1, work px: the union of the labels' ROIs) as wide as
-        the rectangle on each side: the room next to the person. Not inside the ROIs, where a
-        person who covers their own seed-time ghost matches the model and is background."""
-        x0, y0, x1, y1 = rect
-        H, W = fg.shape
-        w, h = x1 - x0, y1 - y0
-        X0, Y0, X1, Y1 = max(0, x0 - w), max(0, y0 - h), min(W, x1 + w), min(H, y1 + h)
-        ring = ~fg[Y0:Y1, X0:X1]
-        ring[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0] = False
-        ys, xs = np.nonzero(ring)
-        step = max(1, ys.size // 4000)
-        return colour_features(img[ys[::step] + Y0, xs[::step] + X0])
-
-    def _bootstrap_colours(self, core_fg: dict[str, np.ndarray],
-                           room: Callable[[], np.ndarray] | None = None) -> None:
+    def _bootstrap_colours(self, core_fg: dict[str, np.ndarray], room: _RoomColours | None = None) -> None:
         """Give each colour class still on its broad start model (no configured default) a
         robust estimate from the foreground in its labels' cores (``core_fg``, see
         ``_core_colours``): median, then mean/cov of the pixels within 3 robust sigmas of it.
 
-        ``room``: returns the room's colours next to the person (``_room_colours``; called once,
-        when a class is bootstrapped). With ``colour_room_gate``, core pixels whose colour at least
-        0.2 % of those (and at least 3) lie near are left out first when they are a quarter of the
-        core or more (a smaller share is left to the robust trimming, which handles it, so that a
+        ``room``: the room's colours next to the person (:class:`_RoomColours`). With
+        ``colour_room_gate``, the room-coloured core pixels are left out first when they are a quarter
+        of the core or more (a smaller share is left to the robust trimming, which handles it, so that a
         clean core gives the same model as without the test): where the person stood while
         the background seeded, the foreground is the room seen again (the start position's ghost),
         and a start-up prior off the part has its core on it (default scene, seeds 1-26: the shirt
         or trousers class of 8 seeds learnt from the floor in one or two views). A class whose core
         is all room-coloured waits for a later frame."""
-        room_tree = None
         for cls, core in sorted(core_fg.items()):
             model = self.colour_model(cls)
             if model.learned or cls == SKIN:
@@ -1135,18 +1157,12 @@ class BlobTracker2D:
                 continue
             cfg = self.config
             floor = np.array([cfg.colour_min_sigma_chroma] * 2 + [cfg.colour_min_sigma_intensity])
-            if room is not None and cfg.colour_room_gate > 0:
-                if room_tree is None:
-                    r = room() / floor
-                    room_tree = (cKDTree(r), r.shape[0])
-                tree, n = room_tree
-                if n:
-                    near = tree.query_ball_point(c / floor, cfg.colour_room_gate, return_length=True)
-                    part = near < max(3.0, _ROOM_SHARE * n)
-                    if np.count_nonzero(~part) >= _ROOM_CORE_SHARE * c.shape[0]:  # (fewer: left to the trimming)
-                        if np.count_nonzero(part) < self._min_pixels():
-                            continue
-                        c = c[part]
+            if room is not None:
+                part = ~room.coloured(c)
+                if np.count_nonzero(~part) >= _ROOM_CORE_SHARE * c.shape[0]:  # (fewer: left to the trimming)
+                    if np.count_nonzero(part) < self._min_pixels():
+                        continue
+                    c = c[part]
             med = np.median(c, axis=0)
             mad = 1.4826 * np.median(np.abs(c - med), axis=0)
             keep = np.all(np.abs(c - med) <= 3.0 * (mad + floor), axis=1)
