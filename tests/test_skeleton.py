@@ -1302,6 +1302,36 @@ def test_a_hand_observed_out_of_reach_is_not_used(body, cameras, margin):
         assert to_far["moved"] < to_far["hidden"] - 0.2, to_far
 
 
+@pytest.mark.parametrize("labels, after_frames, gated",
+                         [(["l_shin"], 0, True), ([], 0, False), (["l_shin"], 10, False)])
+def test_a_shin_observed_out_of_its_legs_reach_is_not_used(body, cameras, labels, after_frames, gated):
+    """tracking.reach_gate_labels: in every view the left shin's label sits 1.2 m in front of the
+    shin (another leg, the trunk), out of the leg's reach from the hip (1.3 x hip -> knee -> shin
+    blob). Gated, that blob is not used: the estimate is the one with the shin unseen. Not gated
+    (no such labels, or the track younger than ``reach_gate_after_frames``), the fit takes it."""
+    theta = _test_pose(body)
+    k_shin = body.blob_labels.index("l_shin")
+    far = body.blob_centres(theta)[k_shin] + np.array([1.2, 0.0, 0.0])
+    hidden = blobs_2d(body, cameras, theta, hide=("l_shin",))
+    moved = {c: bl + [dataclasses.replace(b, label="l_shin") for b in _skin_blobs_at(cameras, [far])[c]]
+             for c, bl in hidden.items()}
+    ankle = body.joint_names.index("l_ankle")
+    cfg = {"tracking": {"reach_gate_labels": labels, "reach_gate_after_frames": after_frames}}
+    result = {}
+    for name, frame in (("hidden", hidden), ("moved", moved)):
+        est = make_estimator("baseline", body, cameras, cfg)
+        for k in range(3):
+            est.update(stamp(k), blobs_2d(body, cameras, theta))
+        result[name] = est.update(stamp(3), frame).joints[ankle]
+    to_far = {k: float(np.linalg.norm(w - far)) for k, w in result.items()}
+    if gated:
+        assert "l_shin" not in est.last_observed
+        assert np.allclose(result["moved"], result["hidden"], atol=1e-9), to_far
+    else:
+        assert "l_shin" in est.last_observed
+        assert to_far["moved"] < to_far["hidden"] - 0.1, to_far
+
+
 def test_reacquire_config_errors(body, cameras):
     with pytest.raises(InputError, match="fit.predict_velocity_links"):
         make_estimator("baseline", body, cameras, {"fit": {"predict_velocity_links": ["l_wing"]}})
@@ -1313,6 +1343,10 @@ def test_reacquire_config_errors(body, cameras):
         load_skeleton_config({"tracking": {"reacquire_separation_m": -1.0}})
     with pytest.raises(InputError, match="tracking.reach_gate_margin"):
         load_skeleton_config({"tracking": {"reach_gate_margin": -1.0}})
+    with pytest.raises(InputError, match="tracking.reach_gate_labels"):
+        make_estimator("baseline", body, cameras, {"tracking": {"reach_gate_labels": ["l_wing"]}})
+    with pytest.raises(InputError, match="tracking.reach_gate_after_frames"):
+        load_skeleton_config({"tracking": {"reach_gate_after_frames": -1}})
     with pytest.raises(InputError, match="startup.person_gap_m"):
         load_skeleton_config({"startup": {"person_gap_m": -0.5}})
 

@@ -274,6 +274,11 @@ class TrackingConfig:
     #: from its shoulder in the current pose is not used (the hand's label sits on something else:
     #: another person's face), and the part may be re-acquired; 0 = never
     reach_gate_margin: float = 1.3
+    #: further parts gated so (not re-acquired), their reach measured from the joint above their blob-carrying
+    #: parent (a shin from its hip, through the thigh, whose same-coloured label may be as wrong as its own) ...
+    reach_gate_labels: list = field(default_factory=lambda: ["l_shin", "r_shin"])
+    #: ... from this many frames after a track starts (the start-up pose's legs are the rest pose's)
+    reach_gate_after_frames: int = 10
 
 
 def _default_rest_sigmas() -> dict[str, float]:
@@ -509,6 +514,12 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
     if not all(isinstance(p, str) and p for p in out.tracking.reacquire_labels):
         raise InputError("skeleton config: field 'tracking.reacquire_labels' must be a list of blob labels "
                          "(e.g. [l_hand, r_hand]; [] = off)")
+    if not isinstance(out.tracking.reach_gate_labels, list) or not all(
+            isinstance(p, str) and p for p in out.tracking.reach_gate_labels):
+        raise InputError("skeleton config: field 'tracking.reach_gate_labels' must be a list of blob labels "
+                         "(e.g. [l_shin, r_shin]; [] = off)")
+    if not isinstance(out.tracking.reach_gate_after_frames, int) or out.tracking.reach_gate_after_frames < 0:
+        raise InputError("skeleton config: field 'tracking.reach_gate_after_frames' must be an integer >= 0")
     if not out.tracking.facing_min_size_ratio >= 1.0:
         raise InputError("skeleton config: field 'tracking.facing_min_size_ratio' must be >= 1")
     return out
@@ -1140,6 +1151,16 @@ class _Estimator:
         #: re-acquired part -> (its shoulder: the origin of the top link of its chain below the nearest
         #: ancestor with a blob, the chain's length down to the part's blob centre, m)
         self._reacquire_chain = {lab: self._chain_below_blob(lab) for lab in t.reacquire_labels}
+        unknown = sorted(set(t.reach_gate_labels) - self.labels)
+        if unknown:
+            raise InputError(f"skeleton config: field 'tracking.reach_gate_labels' names '{unknown[0]}', which "
+                             f"is not a blob label of the body model ({sorted(self.labels)})")
+        #: gated part -> (top link, reach m) as ``_reacquire_chain``: the re-acquired parts' chains, then
+        #: ``tracking.reach_gate_labels``' through their blob-carrying parent
+        self._gate_chain = dict(self._reacquire_chain)
+        for lab in t.reach_gate_labels:
+            self._gate_chain.setdefault(lab, self._chain_below_blob(lab, through_parent_blob=True))
+        self._track_key, self._track_frames = -1, 0  # (initialisations, frames gated since) for _gate_reach
         #: {camera: [parts]} whose l_/r_ labels the last frame's view association exchanged
         self.view_swaps: dict[str, list[str]] = {}
         #: the last view association: (its input {camera: [Blob2D]}, its output), for _associate
@@ -1200,15 +1221,18 @@ class _Estimator:
                 reach = max(reach, length + float(np.linalg.norm(p[shoulder] - head)))
         return reach if reach > 0 else 1.0
 
-    def _chain_below_blob(self, label: str) -> tuple[int, float]:
+    def _chain_below_blob(self, label: str, through_parent_blob: bool = False) -> tuple[int, float]:
         """(top link, length m) of ``label``'s chain: the links from the blob's own up to, not
         including, the nearest ancestor that carries a blob (for a hand: hand, forearm, upper arm
         below the torso); the length runs from the top link's origin (the shoulder) through the
-        bones to the blob centre."""
+        bones to the blob centre. ``through_parent_blob``: the chain also takes in the parent link when
+        it carries a blob (for a shin: shin and thigh below the pelvis, from the hip)."""
         kin, body = self.kin, self.body
         i = int(kin.blob_links[kin.blob_index[label]])
         length = float(np.linalg.norm(kin.blob_local[kin.blob_index[label]]))
         carriers = set(int(k) for k in kin.blob_links)
+        if through_parent_blob and body.links[i].parent is not None:
+            carriers.discard(int(kin.parent[i]))
         while body.links[i].parent is not None and int(kin.parent[i]) not in carriers:
             length += float(np.linalg.norm(body.links[i].offset))
             i = int(kin.parent[i])
@@ -1225,12 +1249,22 @@ class _Estimator:
         that lie farther than ``reach_gate_margin`` times the part's reach from its shoulder in the
         current pose (a one-view blob's depth is the prior's, so its distance says little; gating
         those too left the self-occlusion scene's hands off longer: seeds 1-6, 115 -> 122 frames
-        over 150 mm)."""
-        margin = self.cfg.tracking.reach_gate_margin
+        over 150 mm). ``tracking.reach_gate_labels`` likewise, from the hip (:meth:`_chain_below_blob`
+        through the parent's blob), from the ``reach_gate_after_frames``-th frame of a track on: a
+        shin's label on the other leg or the trunk in two or three views drags the leg with it
+        (default scene seed 1, from frame ~52: a right shin 0.5-1.2 m off, the ankle 1.5 m)."""
+        t = self.cfg.tracking
+        margin = t.reach_gate_margin
         if margin <= 0:
             return
+        if self._track_key != self.initialisations:
+            self._track_key, self._track_frames = self.initialisations, 0
+        else:
+            self._track_frames += 1
         p, _ = self.kin.poses(self.theta)
-        for lab, (top, reach) in self._reacquire_chain.items():
+        for lab, (top, reach) in self._gate_chain.items():
+            if lab not in self._reacquire_chain and self._track_frames < t.reach_gate_after_frames:
+                continue
             if (lab in obs and len(obs[lab].cameras) >= 2
                     and float(np.linalg.norm(obs[lab].mean - p[top])) > margin * reach):
                 del obs[lab]
