@@ -1145,9 +1145,9 @@ class BlobTracker2D:
         of the core or more (a smaller share is left to the robust trimming, which handles it, so that a
         clean core gives the same model as without the test): where the person stood while
         the background seeded, the foreground is the room seen again (the start position's ghost),
-        and a start-up prior off the part has its core on it (default scene, seeds 1-26: the shirt
-        or trousers class of 8 seeds learnt from the floor in one or two views). A class whose core
-        is all room-coloured waits for a later frame."""
+        and a start-up prior off the part has its core on it (default scene, seeds 1-26, before: the
+        shirt or trousers class of 6 seeds learnt from the floor in one or two views). A class whose
+        core is all room-coloured waits for a later frame."""
         for cls, core in sorted(core_fg.items()):
             model = self.colour_model(cls)
             if model.learned or cls == SKIN:
