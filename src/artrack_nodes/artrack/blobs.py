@@ -371,6 +371,12 @@ class BlobTrackerConfig:
         if 0 < self.background_max_sigma < self.background_min_sigma:
             raise bad("background_max_sigma", "must be 0 (no cap) or at least background_min_sigma")
 
+    @property
+    def colour_floor(self) -> np.ndarray:
+        """(3,) the colour sigmas' floors in (r, g, I): ``colour_min_sigma_chroma`` twice, then
+        ``colour_min_sigma_intensity``."""
+        return np.array([self.colour_min_sigma_chroma] * 2 + [self.colour_min_sigma_intensity])
+
 
 # =========================================================================== features
 def colour_features(bgr: np.ndarray) -> np.ndarray:
@@ -419,7 +425,7 @@ class ColourModel:
         return result
 
     def _compute_whitening(self, config: BlobTrackerConfig) -> tuple[np.ndarray, float]:
-        floor = np.array([config.colour_min_sigma_chroma] * 2 + [config.colour_min_sigma_intensity]) ** 2
+        floor = config.colour_floor ** 2
         cov = np.asarray(self.cov, float) + np.diag(floor)
         n = 2 if config.colour_features == "rg" else 3
         L = np.linalg.cholesky(cov[:n, :n])
@@ -649,10 +655,6 @@ class _RoomColours:
         self.img, self.fg, self.rect, self.config = img, fg, rect, config
         self._tree: tuple[cKDTree, int] | None = None
 
-    def _floor(self) -> np.ndarray:
-        cfg = self.config
-        return np.array([cfg.colour_min_sigma_chroma] * 2 + [cfg.colour_min_sigma_intensity])
-
     def coloured(self, colours: np.ndarray) -> np.ndarray:
         """(n,) bool: the colours (n, 3) that at least ``_ROOM_SHARE`` of the room's (and at least 3)
         lie within ``colour_room_gate`` of (in units of the colour floors); all False when the
@@ -669,12 +671,13 @@ class _RoomColours:
             ring[max(0, y0 - Y0):max(0, y1 - Y0), max(0, x0 - X0):max(0, x1 - X0)] = False
             ys, xs = np.nonzero(ring)
             step = max(1, ys.size // 4000)
-            room = colour_features(self.img[ys[::step] + Y0, xs[::step] + X0]) / self._floor()
+            room = colour_features(self.img[ys[::step] + Y0, xs[::step] + X0]) / self.config.colour_floor
             self._tree = (cKDTree(room), room.shape[0])
         tree, n = self._tree
         if n == 0:
             return np.zeros(len(colours), bool)
-        near = tree.query_ball_point(np.asarray(colours, float) / self._floor(), gate, return_length=True)
+        near = tree.query_ball_point(np.asarray(colours, float) / self.config.colour_floor, gate,
+                                     return_length=True)
         return near >= max(3.0, _ROOM_SHARE * n)
 
 
@@ -1156,7 +1159,7 @@ class BlobTracker2D:
             if c.shape[0] < self._min_pixels():
                 continue
             cfg = self.config
-            floor = np.array([cfg.colour_min_sigma_chroma] * 2 + [cfg.colour_min_sigma_intensity])
+            floor = cfg.colour_floor
             if room is not None:
                 part = ~room.coloured(c)
                 if np.count_nonzero(~part) >= _ROOM_CORE_SHARE * c.shape[0]:  # (fewer: left to the trimming)
