@@ -1,0 +1,87 @@
+"""bench/closed_loop.py's phases of a run: start-up frames, walk, after the walk; and the occlusion
+claim without the start-up frames."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from artrack.body_model import load_body_model
+from artrack.motion import T_WALK_END
+from artrack.synth import START_STAMP_NS
+
+
+@pytest.fixture(scope="module")
+def closed_loop():
+    path = Path(__file__).resolve().parents[1] / "bench" / "closed_loop.py"
+    spec = importlib.util.spec_from_file_location("bench_closed_loop", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _stamps(times_s):
+    return [START_STAMP_NS + int(round(t * 1e9)) for t in times_s]
+
+
+def test_phases_split_start_up_walk_and_after_the_walk(closed_loop):
+    cl = closed_loop
+    times = np.arange(1.7, 6.0, 1 / 30)  # tracked from 1.7 s, as the default scene
+    n = len(times)
+    err = np.full((n, 15), 0.030)
+    err[: cl.STARTUP_FRAMES] = 0.300  # a start-up far off
+    after = times >= T_WALK_END
+    err[after] = 0.060  # worse once the arms go up
+    head_hands = [2, 5, 8]
+    err[cl.STARTUP_FRAMES:, head_hands] = 0.020
+    err[after, 5] = 0.050
+    p = cl.phases("default", _stamps(times), err, head_hands)
+    assert p["startup_mm"] == pytest.approx(300.0)
+    assert p["walk_mm"] == pytest.approx(1e3 * err[cl.STARTUP_FRAMES:][~after[cl.STARTUP_FRAMES:]].mean())
+    assert p["after_walk_mm"] == pytest.approx(1e3 * err[after].mean())
+    assert p["settled_mm"] == pytest.approx(1e3 * err[cl.STARTUP_FRAMES:].mean())
+    hh = err[cl.STARTUP_FRAMES:][:, head_hands]
+    assert p["head_hands_rms_settled_mm"] == pytest.approx(1e3 * np.sqrt(np.mean(hh**2)))
+    # the line scene has no walk: no walk phases, the rest the same way
+    q = cl.phases("line", _stamps(times), err, head_hands)
+    assert "walk_mm" not in q and q["startup_mm"] == pytest.approx(300.0)
+
+
+def test_occlusion_claim_without_the_start_up_frames(closed_loop):
+    cl = closed_loop
+    body = load_body_model()
+    names = list(body.joint_names)
+    n = 40
+    truth = np.zeros((n, len(names), 3))
+    est = truth.copy()
+    est[: cl.STARTUP_FRAMES, names.index("l_wrist"), 0] = 0.300  # hands far off at start-up only
+    est[25, names.index("r_wrist"), 1] = 0.100  # later, one frame within the limit
+    stamps = _stamps(np.arange(n) / 30)
+    c = cl.claim("occlusion", body, stamps, est, truth)
+    assert c["frames_over_150mm"] == cl.STARTUP_FRAMES and c["hand_max_mm"] == pytest.approx(300.0)
+    assert c["frames_over_150mm_settled"] == 0 and c["hand_max_settled_mm"] == pytest.approx(100.0)
+    est[30, names.index("r_wrist"), 2] = 0.200  # a loss after the start-up counts in both
+    c = cl.claim("occlusion", body, stamps, est, truth)
+    assert c["frames_over_150mm_settled"] == 1 and c["frames_over_150mm"] == cl.STARTUP_FRAMES + 1
+
+
+def test_smoothed_line_keeps_a_bow_and_drops_the_jitter(closed_loop):
+    """The line claim's smoothed figure: frame-to-frame jitter goes, a slow bow of the path stays."""
+    cl = closed_loop
+    body = load_body_model()
+    wr = list(body.joint_names).index("r_wrist")
+    n = 120
+    s = np.linspace(-0.2, 0.2, n)
+    truth = np.zeros((n, len(body.joint_names), 3))
+    truth[:, wr, 1] = s
+    rng = np.random.default_rng(0)
+    jitter = truth.copy()
+    jitter[:, wr, 0] += rng.normal(0.0, 0.005, n)
+    bow = truth.copy()
+    bow[:, wr, 0] += 0.010 * np.sin(np.pi * (s + 0.2) / 0.4)
+    stamps = _stamps(np.arange(n) / 30)
+    cj = cl.claim("line", body, stamps, jitter, truth)
+    cb = cl.claim("line", body, stamps, bow, truth)
+    assert cj["line_rms_mm_smoothed"] < 0.6 * cj["line_rms_mm"]  # white noise: SG(9, 2) passes ~0.55 of it
+    assert cb["line_rms_mm_smoothed"] == pytest.approx(cb["line_rms_mm"], rel=0.02)
