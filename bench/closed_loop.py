@@ -124,6 +124,12 @@ def scene_bag(name: str, n_cameras: int, args, body) -> Path:
 
 
 # ------------------------------------------------------------------ the claims
+def motion_time(name: str, stamps: list[int]) -> np.ndarray:
+    """(T,) the scene's motion clock, s, at the frame stamps (synth: the motion starts after the
+    scene's empty room, ``empty_s``)."""
+    return (np.asarray(stamps, dtype=np.int64) - START_STAMP_NS) * 1e-9 - SCENES[name].get("empty_s", 0.0)
+
+
 def line_rms_mm(points: np.ndarray) -> float:
     """RMS distance of (T, 3) points to their best-fit 3-D line (PCA), mm."""
     c = points - points.mean(axis=0)
@@ -174,9 +180,8 @@ def claim(name: str, body, stamps: list[int], est: np.ndarray, truth: np.ndarray
                 "frames_over_150mm_settled": int(np.sum(after > HAND_LIMIT_M))}
     if name == "distractor":
         jumps = 0
-        for k, s in enumerate(stamps):
-            t = (s - START_STAMP_NS) * 1e-9 - SCENES[name].get("empty_s", 0.0)
-            other = body.joint_positions(pose_at("distractor", t, body))
+        for k, t in enumerate(motion_time(name, stamps)):
+            other = body.joint_positions(pose_at("distractor", float(t), body))
             for j in (head, wl, wr):
                 if np.linalg.norm(est[k, j] - other[j]) < np.linalg.norm(est[k, j] - truth[k, j]):
                     jumps += 1
@@ -227,7 +232,7 @@ def phases(name: str, stamps: list[int], err: np.ndarray, head_hands: list[int])
     start, rest = np.arange(n) < STARTUP_FRAMES, np.arange(n) >= STARTUP_FRAMES
     out = {"startup_mm": mm(start), "settled_mm": mm(rest), "head_hands_rms_settled_mm": mm(rest, head_hands, True)}
     if name in WALK_SCENES:
-        t = (np.asarray(stamps, dtype=np.int64) - START_STAMP_NS) * 1e-9 - SCENES[name].get("empty_s", 0.0)
+        t = motion_time(name, stamps)
         out["walk_mm"], out["after_walk_mm"] = mm(rest & (t < T_WALK_END)), mm(t >= T_WALK_END)
     return out
 
