@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from artrack.cameras import Camera
-from artrack.projection import Capsule, confidence_from_covariance, occluded, project_gaussian, project_priors
+from artrack.projection import (
+    DEFAULT_CENTRE_OCCLUSION_LABELS,
+    DEFAULT_OCCLUSION_SURFACE_SIGMA,
+    Capsule,
+    confidence_from_covariance,
+    occluded,
+    project_gaussian,
+    project_priors,
+)
 from artrack.types import BEHIND_CAMERA, OCCLUDED, OFF_IMAGE, VISIBLE, Blob3D, BodyEstimate, LinkEstimate
 
 K = np.array([[900.0, 0.0, 639.5], [0.0, 910.0, 359.5], [0.0, 0.0, 1.0]])
@@ -205,6 +213,8 @@ def _sight_line_clearance(C, X, caps, margin=0.05):
     """Brute-force reference for ``occluded``: min over capsules of (distance from the sight
     line C -> X shortened by ``margin``, sampled at 4000 points, to the capsule axis) - radius."""
     v = X - C
+    if np.linalg.norm(v) <= margin:  # the camera is within the margin: nothing can hide the blob
+        return np.inf
     end = X - v / np.linalg.norm(v) * margin
     pts = C + np.linspace(0.0, 1.0, 4000)[:, None] * (end - C)
     best = np.inf
@@ -220,7 +230,8 @@ def test_all_blobs_of_a_camera_at_once_equal_one_blob_at_a_time():
     must equal the per-blob definition: project_gaussian for mean and covariance, and occluded
     exactly when the sight line passes within a radius of another label's capsule axis (a
     sampled brute-force reference; random blobs, capsules and a camera inside the scene,
-    so that every visibility code occurs)."""
+    so that every visibility code occurs). The sight line stops 2 sigma of the blob along it short
+    of its mean (at least 5 cm), the hands' 5 cm short (``centre_occlusion_labels``)."""
     rng = np.random.default_rng(5)
     cams = ring_cameras()
     cams.append(Camera.look_at("inside", 1280, 720, K, [0.3, 0.0, 1.0], [2.0, 0.0, 1.0]))
@@ -234,7 +245,8 @@ def test_all_blobs_of_a_camera_at_once_equal_one_blob_at_a_time():
         caps = [Capsule(str(rng.choice(labels)), rng.normal([0.0, 0.0, 1.0], 0.5),
                         rng.normal([0.0, 0.0, 1.0], 0.5), float(rng.uniform(0.02, 0.2))) for _ in range(10)]
         caps.append(Capsule("torso", np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), 0.1))  # a sphere
-        out = project_priors(blobs, cams, 7, occluders=caps)
+        hands = ("left_hand", "right_hand")
+        out = project_priors(blobs, cams, 7, occluders=caps, occlusion_surface_sigma=2.0, centre_occlusion_labels=hands)
         for cam in cams:
             for blob, prior in zip(blobs, out[cam.name], strict=True):
                 seen.add(prior.visibility)
@@ -245,8 +257,29 @@ def test_all_blobs_of_a_camera_at_once_equal_one_blob_at_a_time():
                 np.testing.assert_allclose(prior.mean, mean2, atol=1e-9)
                 np.testing.assert_allclose(prior.cov, cov2, rtol=1e-9, atol=1e-9)
                 if prior.visibility != OFF_IMAGE:
-                    gap = _sight_line_clearance(cam.center, blob.mean, [c for c in caps if c.label != blob.label])
+                    d = (blob.mean - cam.center) / np.linalg.norm(blob.mean - cam.center)
+                    stop = 0.05 if blob.label in hands else max(0.05, 2.0 * float(np.sqrt(d @ blob.cov @ d)))
+                    gap = _sight_line_clearance(cam.center, blob.mean, [c for c in caps if c.label != blob.label],
+                                                stop)
                     if abs(gap) > 1e-3:  # not grazing: the sampled reference is decisive
                         assert (prior.visibility == OCCLUDED) == (gap < 0.0)
                     assert prior.confidence == confidence_from_covariance(blob.cov)
     assert seen == {VISIBLE, OCCLUDED, OFF_IMAGE, BEHIND_CAMERA}
+
+
+def test_a_blob_is_occluded_when_its_near_surface_is_hidden_not_its_centre():
+    """The pelvis' blob centre lies inside the body, behind the tops of its own thighs' capsules as
+    seen from the front: tested to its centre (occlusion_surface_sigma 0) it is OCCLUDED, tested
+    to its near surface (2 sigma of the blob along the line of sight) VISIBLE. A hand at the same
+    place stays OCCLUDED (``centre_occlusion_labels``), and a blob far behind a capsule stays
+    OCCLUDED under either test."""
+    cam = Camera.look_at("front", 1280, 720, K, [3.0, 0.0, 0.9], [0.0, 0.0, 0.9])
+    thigh = Capsule("l_thigh", np.array([0.10, 0.0, 0.9]), np.array([0.10, 0.0, 0.5]), 0.07)
+    pelvis = Blob3D("pelvis", np.array([0.0, 0.0, 0.88]), np.diag([0.11, 0.16, 0.11]) ** 2)
+    hand = Blob3D("l_hand", pelvis.mean, np.diag([0.11, 0.16, 0.11]) ** 2)
+    far = Blob3D("torso", np.array([-0.6, 0.0, 0.88]), np.diag([0.11, 0.16, 0.11]) ** 2)
+    vis = {s: [p.visibility for p in project_priors([pelvis, hand, far], [cam], 1, occluders=[thigh],
+                                                     occlusion_surface_sigma=s)["front"]] for s in (0.0, 2.0)}
+    assert vis[0.0] == [OCCLUDED, OCCLUDED, OCCLUDED]
+    assert vis[2.0] == [VISIBLE, OCCLUDED, OCCLUDED]
+    assert DEFAULT_OCCLUSION_SURFACE_SIGMA == 2.0 and "l_hand" in DEFAULT_CENTRE_OCCLUSION_LABELS

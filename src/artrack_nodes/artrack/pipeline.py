@@ -18,7 +18,7 @@ loop can amplify); a process-level test checks that their joints agree to 1e-9.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -44,7 +44,7 @@ from .messages import (
     priors_from_msg,
     rosbags_factory,
 )
-from .projection import project_priors
+from .projection import DEFAULT_CENTRE_OCCLUSION_LABELS, DEFAULT_OCCLUSION_SURFACE_SIGMA, project_priors
 from .skeleton import make_estimator
 from .types import Blob2D, BodyEstimate, Prior2D
 
@@ -134,12 +134,18 @@ class SkeletonStage:
 class ProjectionStage:
     """Feedback projection of the predicted 3-D blobs into every camera (§1)."""
 
-    def __init__(self, body: BodyModel, cameras: list[Camera]):
+    def __init__(self, body: BodyModel, cameras: list[Camera],
+                 occlusion_surface_sigma: float = DEFAULT_OCCLUSION_SURFACE_SIGMA,
+                 centre_occlusion_labels: Sequence[str] = DEFAULT_CENTRE_OCCLUSION_LABELS):
         self.body = body
         self.cameras = sorted(cameras, key=lambda c: c.name)
+        self.occlusion_surface_sigma = float(occlusion_surface_sigma)
+        self.centre_occlusion_labels = tuple(centre_occlusion_labels)
 
     def step(self, prediction: BodyEstimate) -> dict[str, list[Prior2D]]:
-        return project_priors(prediction, self.cameras, self.body)
+        return project_priors(prediction, self.cameras, self.body,
+                              occlusion_surface_sigma=self.occlusion_surface_sigma,
+                              centre_occlusion_labels=self.centre_occlusion_labels)
 
 
 @dataclass

@@ -16,6 +16,7 @@ from artrack.body_model import load_body_model
 from artrack.errors import ArtrackError
 from artrack.messages import body_from_msg, prior_array_msg
 from artrack.pipeline import ProjectionStage
+from artrack.projection import DEFAULT_CENTRE_OCCLUSION_LABELS, DEFAULT_OCCLUSION_SURFACE_SIGMA
 
 from .common import (
     PREDICTION_TOPIC,
@@ -31,15 +32,23 @@ from .common import (
 PARAMS = [
     ("camera_names", ["cam01", "cam02", "cam03", "cam04"], "cameras to project into"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
+    ("occlusion_surface_sigma", DEFAULT_OCCLUSION_SURFACE_SIGMA,
+     "a prior is occluded when its line of sight, stopped this many of the blob's standard deviations "
+     "short of its mean, passes through another link (0: stopped 5 cm short)"),
+    ("centre_occlusion_labels", list(DEFAULT_CENTRE_OCCLUSION_LABELS),
+     "blobs whose line of sight runs to their mean (less 5 cm) whatever their extent"),
 ]
+LIMITS = {"occlusion_surface_sigma": (0.0, 10.0)}
 
 
 class FeedbackProjectionNode(Node):
     def __init__(self):
         super().__init__("feedback_projection")
-        p = declare_all(self, PARAMS, runtime={})  # all read-only once running
+        p = declare_all(self, PARAMS, LIMITS, runtime={})  # all read-only once running
         self.names = list(p["camera_names"])
         self.body = load_body_model(p["body_model"] or None)
+        self.occlusion_surface_sigma = float(p["occlusion_surface_sigma"])
+        self.centre_occlusion_labels = [str(x) for x in p["centre_occlusion_labels"]]
         self.stage: ProjectionStage | None = None
         self.waiting: list = []
         f = msgs()
@@ -51,7 +60,7 @@ class FeedbackProjectionNode(Node):
         self.diag = NodeDiagnostics(self, update=lambda d: d.set("waiting_for_cameras", self.stage is None))
 
     def on_cameras(self, cameras) -> None:
-        self.stage = ProjectionStage(self.body, cameras)
+        self.stage = ProjectionStage(self.body, cameras, self.occlusion_surface_sigma, self.centre_occlusion_labels)
         for msg in self.waiting:
             self.on_prediction(msg)
         self.waiting.clear()
@@ -77,7 +86,7 @@ class FeedbackProjectionNode(Node):
 
 
 def main(args=None) -> None:
-    sys.exit(run_node(FeedbackProjectionNode, __doc__, PARAMS, args))
+    sys.exit(run_node(FeedbackProjectionNode, __doc__, PARAMS, args, LIMITS))
 
 
 if __name__ == "__main__":
