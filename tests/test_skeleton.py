@@ -55,7 +55,8 @@ def cameras():
 
 
 def blobs_2d(body, cameras, theta, rng=None, sigma_px=0.0, hide=()):
-    """Labelled 2-D blobs: projected blob-feature Gaussians (+ pixel noise on the means)."""
+    """Labelled 2-D blobs: projected blob-feature Gaussians (+ pixel noise on the means), each with
+    the pixel count of its 2-sigma ellipse (4 pi sqrt(det C))."""
     means, covs = body.blob_gaussians(theta)
     out = {}
     for cam in cameras:
@@ -65,7 +66,8 @@ def blobs_2d(body, cameras, theta, rng=None, sigma_px=0.0, hide=()):
             if label in hide:
                 continue
             m = uv[k] + (rng.normal(scale=sigma_px, size=2) if rng is not None else 0.0)
-            blobs.append(Blob2D(label, m, J[k] @ covs[k] @ J[k].T, pixel_count=200))
+            C = J[k] @ covs[k] @ J[k].T
+            blobs.append(Blob2D(label, m, C, pixel_count=max(1, int(4.0 * np.pi * np.sqrt(np.linalg.det(C))))))
         out[cam.name] = blobs
     return out
 
@@ -1010,7 +1012,9 @@ def test_kinematic_takes_the_raw_trackers_triangulations_that_needed_no_prior(bo
             continue  # (a track's first frame: the filters start at the raw tracker's pose)
         seen, got, _ = est._triangulation
         _, raw_obs, raw_free = est.raw._triangulation
-        want = triangulate_blobs(seen, est.cameras, priors, view_outlier_chi2=est.cfg.measurement.view_outlier_chi2)
+        m = est.cfg.measurement
+        want = triangulate_blobs(seen, est.cameras, priors, view_outlier_chi2=m.view_outlier_chi2,
+                                 small_blob_fraction=m.small_blob_fraction)
         assert list(got) == list(want), k
         for lab, blob in want.items():
             if lab in raw_free:
@@ -1271,6 +1275,29 @@ def test_a_lost_hand_is_reacquired_from_unlabelled_skin_blobs(body, cameras):
     skin = _skin_blobs_at(cameras, [face, far])
     est.update(stamp(3), {c: bl + skin[c] for c, bl in blobs_2d(body, cameras, up, hide=("l_hand",)).items()})
     assert est.reacquired == []
+
+
+def test_a_hand_beside_the_pelvis_is_reacquired(body, cameras):
+    """tracking.reacquire_separation_m keeps re-acquired hands away from the other skin-coloured parts
+    only (the head, the other hand): skin blobs can be no other part's. A left hand lost by the hip,
+    0.13 m from the pelvis' observed 3-D blob and within the arm's reach, is found there (stop 42;
+    before, the pelvis' blob kept it from being found, and a hand behind the back stayed lost)."""
+    theta = _test_pose(body)
+    labels = body.blob_labels
+    pelvis = body.blob_centres(theta)[labels.index("pelvis")]
+    point = pelvis + np.array([-0.12, 0.05, 0.0])
+    est = make_estimator("baseline", body, cameras, None)
+    t = est.cfg.tracking
+    assert np.linalg.norm(point - pelvis) < t.reacquire_separation_m
+    shoulder = body.forward_kinematics(theta)[body.link_index("l_upper_arm"), :3, 3]
+    assert np.linalg.norm(point - shoulder) < t.reacquire_reach_margin * est._reacquire_chain["l_hand"][1]
+    for k in range(3):
+        est.update(stamp(k), blobs_2d(body, cameras, theta))
+    skin = _skin_blobs_at(cameras, [point])
+    est.update(stamp(3), {c: bl + skin[c] for c, bl in blobs_2d(body, cameras, theta, hide=("l_hand",)).items()})
+    assert "pelvis" in est.last_observed
+    assert est.reacquired == ["l_hand"]
+    np.testing.assert_allclose(est.last_observed["l_hand"].mean, point, atol=0.01)
 
 
 @pytest.mark.parametrize("margin", [1.3, 0.0])

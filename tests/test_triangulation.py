@@ -384,3 +384,30 @@ def test_drop_overlapping_pairs_leaves_the_crossing_legs_to_the_views_that_tell_
     assert drop_overlapping_pairs(reported, ["thigh"], 4.0)[1] == {}
     one_side = {c: [b for b in bl if b.label != "r_shin"] for c, bl in reported.items()}
     assert drop_overlapping_pairs(one_side, ["shin"], 4.0)[1] == {}
+
+
+def test_a_small_blob_counts_less_by_its_pixel_count():
+    """``small_blob_fraction``: a view's information is multiplied by n / (n + n0), n0 = the fraction
+    times the image area; the same as triangulating with each blob's covariance divided by that
+    weight. A sliver of a hidden part (few pixels, a small extent, its mean 12 px off) pulls the
+    point less than by its extent alone; a blob of many pixels keeps (nearly) its weight."""
+    cams = ring_cameras()
+    X = np.array([0.1, -0.2, 1.1])
+    by_cam = {}
+    for i, cam in enumerate(cams):
+        uv = cam.project(X)[0][0]
+        if i == 3:  # the sliver
+            by_cam[cam.name] = [Blob2D("l_hand", uv + [12.0, 0.0], np.eye(2) * 1.0, pixel_count=6)]
+        else:
+            by_cam[cam.name] = [Blob2D("l_hand", uv, np.eye(2) * 9.0, pixel_count=400 + 100 * i)]
+    fraction = 40.0 / (1280 * 720)  # n0 = 40 px
+    weighted = triangulate_blobs(by_cam, cams, small_blob_fraction=fraction)["l_hand"]
+    scaled = {c: [Blob2D(b.label, b.mean, b.cov * (b.pixel_count + 40.0) / b.pixel_count, pixel_count=b.pixel_count)
+                  for b in bl] for c, bl in by_cam.items()}
+    np.testing.assert_allclose(weighted.mean, triangulate_blobs(scaled, cams)["l_hand"].mean, atol=1e-9)
+    np.testing.assert_allclose(weighted.cov, triangulate_blobs(scaled, cams)["l_hand"].cov, rtol=1e-6, atol=1e-12)
+    plain = triangulate_blobs(by_cam, cams)["l_hand"]
+    assert np.linalg.norm(weighted.mean - X) < 0.7 * np.linalg.norm(plain.mean - X)  # 30 mm against 48
+    with_many = {c: [Blob2D(b.label, b.mean, b.cov, pixel_count=10**6) for b in bl] for c, bl in by_cam.items()}
+    np.testing.assert_allclose(triangulate_blobs(with_many, cams, small_blob_fraction=fraction)["l_hand"].mean,
+                               triangulate_blobs(with_many, cams)["l_hand"].mean, atol=1e-4)

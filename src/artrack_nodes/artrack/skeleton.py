@@ -232,6 +232,9 @@ class MeasurementConfig:
     view_association: list = field(default_factory=lambda: ["thigh", "shin"])
     view_association_margin_chi2: float = 4.0
     view_outlier_chi2: float = 0.0
+    #: a view's blob of n pixels counts n / (n + n₀) in the triangulation, n₀ = this × the image
+    #: area (:func:`artrack.triangulation.triangulate_blobs`; 0 = by its extent alone)
+    small_blob_fraction: float = 3.90625e-4
 
 
 @dataclass
@@ -1276,7 +1279,8 @@ class _Estimator:
         or more views this frame takes the best 3-D point where the views' unlabelled skin blobs
         (label 'skin': the blob trackers report them while a skin label finds nothing,
         ``lost_skin_blobs``) meet (:func:`match_skin_blobs`), among the points farther than
-        ``reacquire_separation_m`` from every other observed 3-D blob (the head, the other hand)
+        ``reacquire_separation_m`` from every other observed 3-D blob of the skin colour (the head,
+        the other hand)
         and within ``reacquire_reach_margin`` times the part's reach of its shoulder in the current
         pose. The nearest point to the shoulder goes first; parts take distinct points. Adds the
         found blobs to ``obs`` (in place) and returns their labels."""
@@ -1288,7 +1292,9 @@ class _Estimator:
         if sum(1 for bl in skin.values() if bl) < 2:
             return []
         points = match_skin_blobs(skin, self.cameras)
-        others = [b.mean for lab, b in obs.items() if lab not in lost]
+        # only a skin-coloured part can own a skin blob: the pelvis' or a thigh's blob beside a hand
+        # behind the back does not keep the hand from being found there
+        others = [b.mean for lab, b in obs.items() if lab not in lost and self._skin_coloured(lab)]
         points = [p for p in points
                   if all(np.linalg.norm(p[0] - m) > t.reacquire_separation_m for m in others)]
         p, _ = self.kin.poses(self.theta)
@@ -1307,6 +1313,11 @@ class _Estimator:
             found.append(lab)
             used.add(k)
         return found
+
+    def _skin_coloured(self, label: str) -> bool:
+        """Whether the blob ``label`` has the skin colour class (the head, the hands)."""
+        blob = self.body.link(label).blob
+        return blob is not None and blob.colour == SKIN
 
     # -- measurements ----------------------------------------------------------
     def measurement_cov(self, blob: Blob3D) -> np.ndarray:
@@ -1343,8 +1354,9 @@ class _Estimator:
                           priors: Mapping[str, Blob3D] | None) -> tuple[dict[str, Blob3D], set[str]]:
         """(:func:`triangulate_blobs` of ``labelled``, the labels it triangulated without ``priors``)."""
         prior_free: set[str] = set()
-        obs = triangulate_blobs(labelled, self.cameras, priors,
-                                view_outlier_chi2=self.cfg.measurement.view_outlier_chi2, prior_free=prior_free)
+        m = self.cfg.measurement
+        obs = triangulate_blobs(labelled, self.cameras, priors, view_outlier_chi2=m.view_outlier_chi2,
+                                prior_free=prior_free, small_blob_fraction=m.small_blob_fraction)
         return obs, prior_free
 
     def _triangulation_priors(self, stamp_ns: int) -> dict[str, Blob3D] | None:
@@ -1635,7 +1647,8 @@ class _Estimator:
         """Start-up from ``foreground`` + ``skin`` blobs (module docstring)."""
         s = self.cfg.startup
         fg = {c: [b for b in bl if b.label == FOREGROUND] for c, bl in blobs_by_camera.items()}
-        centre_blob = triangulate_blobs(fg, self.cameras).get(FOREGROUND)
+        centre_blob = triangulate_blobs(fg, self.cameras,
+                                        small_blob_fraction=self.cfg.measurement.small_blob_fraction).get(FOREGROUND)
         skin = {}
         for c, bl in blobs_by_camera.items():
             sk = sorted((b for b in bl if b.label == SKIN), key=lambda b: -b.pixel_count)

@@ -39,6 +39,13 @@ Caveat: a Blob2D covariance describes the blob's spatial extent in the image,
 not the uncertainty of its mean; using it as measurement noise weights views
 sensibly (large/far blobs count less) but the absolute 3-D covariance is then
 of the order of the blob's 3-D extent divided by sqrt(number of views).
+
+Small blobs (``small_blob_fraction``): by its extent alone a blob of a few pixels would count
+most, although it is the least reliable view: a part mostly hidden (a hand behind the hip seen
+as a 7-pixel sliver) or a label holding on to a few stray pixels, whose mean is biased and whose
+extent is small because the part is cut. Each view's information is multiplied by
+``n / (n + n₀)``, n the blob's pixel count and n₀ = ``small_blob_fraction`` × the camera's image
+area (a blob of n₀ pixels counts half; one of many pixels as its extent says).
 """
 
 from __future__ import annotations
@@ -363,6 +370,7 @@ def triangulate_blobs(
     fuse_prior: bool = False,
     view_outlier_chi2: float = 0.0,
     prior_free: set[str] | None = None,
+    small_blob_fraction: float = 0.0,
 ) -> dict[str, Blob3D]:
     """Triangulate every label seen in the cameras (as :func:`triangulate_blob` per label, with
     one undistortion per camera and the labels' Gauss–Newton steps run together).
@@ -374,6 +382,8 @@ def triangulate_blobs(
     triangulated, in order of first appearance. Raises InputError for a camera name
     that is not among ``cameras``. ``prior_free``, when given, receives the labels whose
     triangulation did not use ``priors`` (their rays met): the same with any other priors.
+    ``small_blob_fraction`` > 0: each view's information is multiplied by n / (n + n₀), n the
+    blob's pixel count, n₀ this times the camera's width × height (module docstring).
     """
     cams = dict(cameras) if isinstance(cameras, Mapping) else {c.name: c for c in cameras}
     by_label: dict[str, dict[str, Blob2D]] = {}
@@ -394,6 +404,11 @@ def triangulate_blobs(
             dirs = cams[name].rays(uv)[1]
             ray.update(zip(keys, dirs, strict=True))
     info = dict(zip(ray, _information_2d(np.array([by_label[label][name].cov for label, name in ray])), strict=True))
+    if small_blob_fraction > 0:
+        for label, name in info:
+            n = float(by_label[label][name].pixel_count)
+            n0 = small_blob_fraction * cams[name].width * cams[name].height
+            info[(label, name)] = info[(label, name)] * (n / (n + n0))
     problems: list[_Problem] = []
     for label, views in by_label.items():
         obs = [(cams[name], b) for name, b in views.items() if (label, name) in ray]
