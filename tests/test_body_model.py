@@ -213,7 +213,8 @@ def test_error_names_file(tmp_path, raw):
 
 def test_extends_with_link_overrides(body, tmp_path):
     """A variant file takes the base body and changes only what it names: the Pose2Sim body
-    adds skin blobs on the upper arms, everything else (links, limits, shapes, joints) equal."""
+    adds skin blobs on the upper arms and keeps the pelvis' and thighs' earlier blob centres (stop
+    42), everything else (links, limits, shapes, joints, the other blobs) equal."""
     variant = load_body_model(CONFIG.parent / "pose2sim_body_model.yaml")
     assert variant.link_names == body.link_names and variant.joint_names == body.joint_names
     assert np.array_equal(variant.lower, body.lower) and np.array_equal(variant.upper, body.upper)
@@ -224,8 +225,10 @@ def test_extends_with_link_overrides(body, tmp_path):
         assert blob.colour == "skin"
         np.testing.assert_allclose(blob.centre, [0.0, 0.0, -0.145])
         assert body.link(f"{side}_upper_arm").blob is None
-    for name in ("torso", "l_hand", "r_thigh"):
+    for name in ("torso", "l_hand", "r_shin"):
         np.testing.assert_array_equal(variant.link(name).blob.centre, body.link(name).blob.centre)
+    np.testing.assert_allclose(variant.link("pelvis").blob.centre, [0.046, 0.0, -0.018])
+    assert not np.allclose(variant.link("r_thigh").blob.centre, body.link("r_thigh").blob.centre)
     theta = body.rest_pose() + 0.1
     np.testing.assert_array_equal(variant.forward_kinematics(theta), body.forward_kinematics(theta))
 
