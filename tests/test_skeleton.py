@@ -548,6 +548,8 @@ def test_config_file_and_errors(body, cameras):
         load_skeleton_config({"fit": {"tolerance": 0.0}})
     with pytest.raises(InputError, match="measurement.view_outlier_chi2"):
         load_skeleton_config({"measurement": {"view_outlier_chi2": -1.0}})
+    with pytest.raises(InputError, match="measurement.small_blob_fraction"):
+        load_skeleton_config({"measurement": {"small_blob_fraction": -1e-4}})
     pose2sim = yaml.safe_load((config_dir() / "pose2sim_skeleton.yaml").read_text())
     assert load_skeleton_config(pose2sim).fit.ground_sigma_m > 0  # the recording's file loads
     with pytest.raises(InputError, match="unknown estimator kind"):

@@ -490,6 +490,8 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'measurement.view_association_margin_chi2' must be >= 0")
     if not out.measurement.view_outlier_chi2 >= 0:
         raise InputError("skeleton config: field 'measurement.view_outlier_chi2' must be >= 0 (0 = off)")
+    if not out.measurement.small_blob_fraction >= 0:
+        raise InputError("skeleton config: field 'measurement.small_blob_fraction' must be >= 0 (0 = off)")
     parts = out.fit.overlap_parts
     if not isinstance(parts, list) or not all(isinstance(p, str) and p for p in parts):
         raise InputError("skeleton config: field 'fit.overlap_parts' must be a list of part names "
