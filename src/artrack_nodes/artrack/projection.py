@@ -306,12 +306,13 @@ def project_priors(
         occ = np.zeros(len(front), bool)
         seen = front[inside]
         stop = np.full(len(seen), float(occlusion_margin))  # how far short of each mean its line of sight stops
-        ext = seen[extended[seen]]
+        surface = extended[seen]  # the blobs tested against their near surface
+        ext = seen[surface]
         if occlusion_surface_sigma > 0 and len(ext):
             d = means3[ext] - cam.center
             d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
             sigma = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", d, covs3[ext], d), 0.0))
-            stop[extended[seen]] = np.maximum(occlusion_margin, occlusion_surface_sigma * sigma)
+            stop[surface] = np.maximum(occlusion_margin, occlusion_surface_sigma * sigma)
         occ[inside] = _occluded_many(cam.center, means3[seen], [labels[k] for k in seen], capsules, stop)
         priors = [Prior2D(lab, np.full(2, np.nan), np.full((2, 2), np.nan), 0.0, BEHIND_CAMERA, stamp_ns)
                   for lab in labels]

@@ -403,12 +403,12 @@ def triangulate_blobs(
             uv = np.array([np.asarray(by_label[label][name].mean, float).reshape(2) for label, _ in keys])
             dirs = cams[name].rays(uv)[1]
             ray.update(zip(keys, dirs, strict=True))
-    info = dict(zip(ray, _information_2d(np.array([by_label[label][name].cov for label, name in ray])), strict=True))
-    if small_blob_fraction > 0:
-        for label, name in info:
-            n = float(by_label[label][name].pixel_count)
-            n0 = small_blob_fraction * cams[name].width * cams[name].height
-            info[(label, name)] = info[(label, name)] * (n / (n + n0))
+    infos = _information_2d(np.array([by_label[label][name].cov for label, name in ray]))
+    if small_blob_fraction > 0 and len(infos):
+        n = np.array([by_label[label][name].pixel_count for label, name in ray], float)
+        n0 = np.array([small_blob_fraction * cams[name].width * cams[name].height for _, name in ray])
+        infos = infos * (n / (n + n0))[:, None, None]
+    info = dict(zip(ray, infos, strict=True))
     problems: list[_Problem] = []
     for label, views in by_label.items():
         obs = [(cams[name], b) for name, b in views.items() if (label, name) in ray]
