@@ -54,7 +54,9 @@ tracker); wall-clock times vary with the machine load. Run from the repository r
 
 ``--empty-seed 1.5`` renders the same scenes with the room shown empty for their first 1.5 s
 (the person moves on unseen): the background then seeds without the ghost of the start
-position, which measures how much of a scene's error that ghost causes.
+position, which measures how much of a scene's error that ghost causes. ``--body YAML`` tracks
+with another body model (e.g. extra blobs, ``extends: body_model.yaml`` with ``link_overrides``)
+on the same images, which are always rendered with the default body.
 
 A change is judged on many seeds, paired: save the JSON line of a run before it and pass it
 with ``--compare`` to the run after it (``artrack.evaluation.compare_paired``: per seed
@@ -85,7 +87,7 @@ import numpy as np  # noqa: E402
 from scipy.signal import savgol_filter  # noqa: E402
 
 from artrack.bags import read_scene, write_scene_bag  # noqa: E402
-from artrack.body_model import limb_joint_indices, load_body_model  # noqa: E402
+from artrack.body_model import BodyModelError, limb_joint_indices, load_body_model  # noqa: E402
 from artrack.evaluation import compare_paired  # noqa: E402
 from artrack.motion import T_WALK_END, pose_at  # noqa: E402
 from artrack.pipeline import ClosedLoopPipeline, load_pipeline_config  # noqa: E402
@@ -302,6 +304,10 @@ def main() -> int:
                     help="diagnosis: every camera shows the empty room for the first S seconds (the person moves "
                          "on unseen; ground truth kept), so the background seeds without a ghost of the start "
                          "position (synth.SceneConfig.blackout; default 0: off)")
+    ap.add_argument("--body", metavar="YAML", default=None,
+                    help="the tracker's body model (default config/body_model.yaml); the scenes are always "
+                         "rendered with the default body, so a model that differs in its blobs is scored "
+                         "against the same images")
     ap.add_argument("--compare", metavar="JSON", default=None,
                     help="the JSON line (last line) of an earlier run: per-seed MPJPE before -> after, paired")
     args = ap.parse_args()
@@ -310,6 +316,12 @@ def main() -> int:
     before = load_rows(args.compare) if args.compare else None
     seeds = args.seeds or [args.seed]
     body = load_body_model()
+    try:
+        track_body = load_body_model(args.body) if args.body else body
+    except (BodyModelError, OSError) as exc:
+        ap.error(f"--body: {exc}")
+    if list(track_body.joint_names) != list(body.joint_names):
+        ap.error(f"--body {args.body}: its joints differ from the default body's, so it cannot be scored here")
     rows = []
     head = (f"{'scene':<11}{'cams':>4} {'estimator':<15}{'feedback':<9}{'MPJPE mm':>9}{'limbs mm':>9}{'tracked %':>10}"
             f"  {'claim':<24}{'fps':>6}{'blobs ms':>9}{'edges ms':>9}{'skel ms':>8}{'proj ms':>8}")
@@ -322,7 +334,7 @@ def main() -> int:
                 for fb in args.feedback:
                     mpjpe, limbs = [], []
                     for sd, path in paths.items():
-                        r = run(path, name, est, fb == "on", body, args.true_start)
+                        r = run(path, name, est, fb == "on", track_body, args.true_start)
                         rows.append({"scene": name, "cameras": n_cam, "estimator": est, "feedback": fb,
                                      "seed": sd, **r})
                         mpjpe.append(r["mpjpe_mm"])
