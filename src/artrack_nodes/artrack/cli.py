@@ -426,7 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--scale", type=float, default=1.0, help="downscale videos to a working resolution")
     t.add_argument("--estimator", default="baseline", choices=["baseline", "kinematic", "dynamic"],
                    help="3-D estimator (default baseline: the fastest; kinematic: more accurate on blobs alone, "
-                   "~2/3 the speed; see README Status)")
+                   "~2/3 the speed; see docs/MEASUREMENTS.md)")
     t.add_argument("--no-feedback", action="store_true", help="blob trackers ignore the 3-D priors once they track "
                    "(priors only label the start-up blobs)")
     t.add_argument("--fps", type=float, default=None,
