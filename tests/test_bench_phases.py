@@ -1,7 +1,10 @@
 """bench/closed_loop.py's phases of a run: start-up frames, walk, after the walk; and the occlusion
-claim without the start-up frames."""
+claim without the start-up frames; its --body option refuses a bad or incompatible model with one
+line and writes nothing."""
 
 import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -85,3 +88,29 @@ def test_smoothed_line_keeps_a_bow_and_drops_the_jitter(closed_loop):
     cb = cl.claim("line", body, stamps, bow, truth)
     assert cj["line_rms_mm_smoothed"] < 0.6 * cj["line_rms_mm"]  # white noise: SG(9, 2) passes ~0.55 of it
     assert cb["line_rms_mm_smoothed"] == pytest.approx(cb["line_rms_mm"], rel=0.02)
+
+
+def _run_closed_loop(*args):
+    bench = Path(__file__).resolve().parents[1] / "bench" / "closed_loop.py"
+    return subprocess.run([sys.executable, str(bench), *args], capture_output=True, text=True, timeout=120)
+
+
+def test_body_option_refuses_a_bad_model_before_rendering(tmp_path):
+    bad = tmp_path / "bad_body.yaml"
+    bad.write_text("links: 3\n")
+    res = _run_closed_loop("--body", str(bad), "--cache", str(tmp_path / "cache"))
+    assert res.returncode == 2
+    last = res.stderr.strip().splitlines()[-1]
+    assert "--body" in last and str(bad) in last and "links" in last
+    assert not (tmp_path / "cache").exists()  # nothing rendered or written
+
+
+def test_body_option_refuses_a_model_with_other_joints(tmp_path):
+    default = Path(__file__).resolve().parents[1] / "config" / "body_model.yaml"
+    other = tmp_path / "other_joints.yaml"
+    other.write_text(f"extends: {default}\nname: other\n"
+                     "joints:\n  - {name: pelvis, link: pelvis, point: [0.0, 0.0, 0.0]}\n")
+    res = _run_closed_loop("--body", str(other), "--cache", str(tmp_path / "cache"))
+    assert res.returncode == 2
+    assert "joints differ" in res.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "cache").exists()
