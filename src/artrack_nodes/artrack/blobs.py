@@ -276,7 +276,7 @@ class BlobTrackerConfig:
     #: while tracking, only foreground 8-connected to the pixels labelled with this label (e.g. 'torso':
     #: the person's trunk) is labelled: a part's label cannot sit on a detached region (a ghost of where
     #: the person stood while the background seeded, another person's hand); '' = no such test (default:
-    #: it helped on some synthetic seeds and locked the loop onto a wrong start on others, docs/MEASUREMENTS.md)
+    #: it helped on some synthetic seeds and locked the loop onto a wrong start on others, docs/HISTORY.md)
     connected_to: str = ""
     #: gaps up to this many px (full resolution) in the foreground count as connected for ``connected_to``
     #: (thin limbs broken by the median filter or by clothing that matches the background)
