@@ -550,6 +550,12 @@ def test_config_file_and_errors(body, cameras):
         load_skeleton_config({"measurement": {"view_outlier_chi2": -1.0}})
     with pytest.raises(InputError, match="measurement.small_blob_fraction"):
         load_skeleton_config({"measurement": {"small_blob_fraction": -1e-4}})
+    with pytest.raises(InputError, match="measurement.min_view_fraction"):
+        load_skeleton_config({"measurement": {"min_view_fraction": -1e-4}})
+    with pytest.raises(InputError, match="measurement.min_view_labels"):
+        load_skeleton_config({"measurement": {"min_view_labels": "l_hand"}})
+    with pytest.raises(InputError, match="min_view_labels' names 'tail'"):
+        make_estimator("baseline", body, cameras, {"measurement": {"min_view_labels": ["tail"]}})
     pose2sim = yaml.safe_load((config_dir() / "pose2sim_skeleton.yaml").read_text())
     assert load_skeleton_config(pose2sim).fit.ground_sigma_m > 0  # the recording's file loads
     with pytest.raises(InputError, match="unknown estimator kind"):
@@ -567,6 +573,42 @@ def test_config_file_and_errors(body, cameras):
     est = make_estimator("baseline", body, cameras, None)
     with pytest.raises(InputError, match="unknown camera 'cam9'"):
         est.update(0, {"cam9": []})
+
+
+def test_a_sliver_is_left_out_where_two_views_see_the_part_whole(body, cameras):
+    """``measurement.min_view_fraction``: a head or hand blob of fewer pixels than the fraction of its
+    image is not triangulated where two or more other views see the part with at least that many;
+    kept where fewer do, and for the labels the rule does not name."""
+    est = make_estimator("baseline", body, cameras, None)
+    m = est.cfg.measurement
+    least = m.min_view_fraction * cameras[0].width * cameras[0].height  # 60 px at 640x480
+    assert "r_hand" in m.min_view_labels and "torso" not in m.min_view_labels
+    blobs = blobs_2d(body, cameras, pose_at("default", 0.0, body))
+    assert all(b.pixel_count >= least for bl in blobs.values() for b in bl if b.label == "r_hand")
+
+    def with_sliver(blobs, cam, label):
+        out = {c: list(bl) for c, bl in blobs.items()}
+        out[cam] = [dataclasses.replace(b, mean=b.mean + 30.0, pixel_count=int(least) - 1) if b.label == label
+                    else b for b in out[cam]]
+        return out
+
+    def labels(out, cam):
+        return [b.label for b in out[cam]]
+
+    sliver = with_sliver(blobs, "cam0", "r_hand")
+    kept = est._drop_small_views(sliver)
+    assert "r_hand" not in labels(kept, "cam0")
+    assert labels(kept, "cam0") == [lab for lab in labels(sliver, "cam0") if lab != "r_hand"]
+    assert all(labels(kept, c) == labels(sliver, c) for c in ("cam1", "cam2", "cam3"))
+    # seen whole in one other view only: the sliver's ray is kept
+    one_other = {c: [b for b in bl if not (b.label == "r_hand" and c in ("cam2", "cam3"))] for c, bl in sliver.items()}
+    assert "r_hand" in labels(est._drop_small_views(one_other), "cam0")
+    # a label the rule does not name keeps its small blob
+    torso = with_sliver(blobs, "cam0", "torso")
+    assert "torso" in labels(est._drop_small_views(torso), "cam0")
+    # off
+    off = make_estimator("baseline", body, cameras, {"measurement": {"min_view_fraction": 0.0}})
+    assert "r_hand" in labels(off._drop_small_views(sliver), "cam0")
 
 
 def test_baseline_fit_is_robust_to_one_mislabelled_blob(body, cameras):

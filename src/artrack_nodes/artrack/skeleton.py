@@ -235,6 +235,12 @@ class MeasurementConfig:
     #: a view's blob of n pixels counts n / (n + n₀) in the triangulation, n₀ = this × the image
     #: area (:func:`artrack.triangulation.triangulate_blobs`; 0 = by its extent alone)
     small_blob_fraction: float = 3.90625e-4
+    #: a view's 2-D blob of ``min_view_labels`` with fewer pixels than this × the camera's image area (a
+    #: sliver) is left out of the triangulation where two or more views see the part with more pixels
+    #: (0 = off; :meth:`_Estimator._drop_small_views`)
+    min_view_fraction: float = 1.953125e-4
+    #: the blob labels ``min_view_fraction`` applies to
+    min_view_labels: list = field(default_factory=lambda: ["head", "l_hand", "r_hand"])
 
 
 @dataclass
@@ -449,6 +455,9 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
             default = getattr(current, key)
             if isinstance(default, bool):
                 require_bool(value, f"skeleton config: field '{name}.{key}'")
+            if isinstance(default, list) and not isinstance(value, (list, tuple)):
+                # (list('l_hand') would be its letters)
+                raise InputError(f"skeleton config: field '{name}.{key}' must be a list, got {type(value).__name__}")
             try:
                 value = type(default)(value)
             except (TypeError, ValueError):
@@ -490,6 +499,11 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'measurement.view_association_margin_chi2' must be >= 0")
     if not out.measurement.view_outlier_chi2 >= 0:
         raise InputError("skeleton config: field 'measurement.view_outlier_chi2' must be >= 0 (0 = off)")
+    if not out.measurement.min_view_fraction >= 0:
+        raise InputError("skeleton config: field 'measurement.min_view_fraction' must be >= 0 (0 = off)")
+    if not isinstance(out.measurement.min_view_labels, list) or not all(
+            isinstance(p, str) and p for p in out.measurement.min_view_labels):
+        raise InputError("skeleton config: field 'measurement.min_view_labels' must be a list of blob labels")
     if not out.measurement.small_blob_fraction >= 0:
         raise InputError("skeleton config: field 'measurement.small_blob_fraction' must be >= 0 (0 = off)")
     parts = out.fit.overlap_parts
@@ -1160,6 +1174,10 @@ class _Estimator:
         if unknown:
             raise InputError(f"skeleton config: field 'tracking.reach_gate_labels' names '{unknown[0]}', which "
                              f"is not a blob label of the body model ({sorted(self.labels)})")
+        unknown = sorted(set(self.cfg.measurement.min_view_labels) - self.labels)
+        if unknown:
+            raise InputError(f"skeleton config: field 'measurement.min_view_labels' names '{unknown[0]}', which "
+                             f"is not a blob label of the body model ({sorted(self.labels)})")
         #: gated part -> (top link, reach m) as ``_reacquire_chain``: the re-acquired parts' chains, then
         #: ``tracking.reach_gate_labels``' through their blob-carrying parent
         self._gate_chain = dict(self._reacquire_chain)
@@ -1341,8 +1359,30 @@ class _Estimator:
         labelled = self._screen_views(labelled)  # before the association
         if m.view_association:
             labelled, self.view_swaps = self._associate(labelled)
+        labelled = self._drop_small_views(labelled)
         obs = self._triangulate_labelled(labelled, priors)
         return {k: v for k, v in obs.items() if k in self.labels}
+
+    def _drop_small_views(self, labelled: dict[str, list[Blob2D]]) -> dict[str, list[Blob2D]]:
+        """{camera: 2-D blobs} without the slivers (``measurement.min_view_fraction``; this project's
+        addition to the 3-D blobs of ALGORITHMS.md §1): a blob of one of ``min_view_labels`` with fewer
+        pixels than the fraction × its camera's image area is left out where two or more other views
+        see the part with at least that many. A sliver is a part mostly hidden in that view, or its
+        label holding on to stray pixels (another person's hand): its mean is the least reliable, yet
+        its extent is so small that even weighted by ``small_blob_fraction`` it counts about twice as
+        much as a whole hand elsewhere, and on the wrong thing it pulls the 3-D blob, and with it the
+        next priors, along its ray. With fewer than two such views it is kept (a ray still helps)."""
+        m = self.cfg.measurement
+        if m.min_view_fraction <= 0 or not m.min_view_labels:
+            return labelled
+        least = {c: m.min_view_fraction * self.cameras[c].width * self.cameras[c].height for c in labelled}
+        seen_whole: dict[str, int] = {}  # label -> views whose blob of it has at least `least` pixels
+        for c, blobs in labelled.items():
+            for label in {b.label for b in blobs if b.pixel_count >= least[c]}:
+                seen_whole[label] = seen_whole.get(label, 0) + 1
+        applies = set(m.min_view_labels)
+        return {c: [b for b in blobs if b.label not in applies or b.pixel_count >= least[c]
+                    or seen_whole.get(b.label, 0) < 2] for c, blobs in labelled.items()}
 
     def _triangulate_labelled(self, labelled: dict[str, list[Blob2D]],
                               priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
