@@ -183,6 +183,7 @@ from .triangulation import (
     associate_views,
     blob_extent,
     drop_overlapping_pairs,
+    drop_slivers,
     midpoint,
     triangulate_blob,
     triangulate_blobs,
@@ -1364,25 +1365,10 @@ class _Estimator:
         return {k: v for k, v in obs.items() if k in self.labels}
 
     def _drop_small_views(self, labelled: dict[str, list[Blob2D]]) -> dict[str, list[Blob2D]]:
-        """{camera: 2-D blobs} without the slivers (``measurement.min_view_fraction``; this project's
-        addition to the 3-D blobs of ALGORITHMS.md §1): a blob of one of ``min_view_labels`` with fewer
-        pixels than the fraction × its camera's image area is left out where two or more other views
-        see the part with at least that many. A sliver is a part mostly hidden in that view, or its
-        label holding on to stray pixels (another person's hand): its mean is the least reliable, yet
-        its extent is so small that even weighted by ``small_blob_fraction`` it counts about twice as
-        much as a whole hand elsewhere, and on the wrong thing it pulls the 3-D blob, and with it the
-        next priors, along its ray. With fewer than two such views it is kept (a ray still helps)."""
+        """{camera: 2-D blobs} without the head's and hands' slivers (``measurement.min_view_fraction``,
+        ``min_view_labels``; :func:`artrack.triangulation.drop_slivers`)."""
         m = self.cfg.measurement
-        if m.min_view_fraction <= 0 or not m.min_view_labels:
-            return labelled
-        least = {c: m.min_view_fraction * self.cameras[c].width * self.cameras[c].height for c in labelled}
-        seen_whole: dict[str, int] = {}  # label -> views whose blob of it has at least `least` pixels
-        for c, blobs in labelled.items():
-            for label in {b.label for b in blobs if b.pixel_count >= least[c]}:
-                seen_whole[label] = seen_whole.get(label, 0) + 1
-        applies = set(m.min_view_labels)
-        return {c: [b for b in blobs if b.label not in applies or b.pixel_count >= least[c]
-                    or seen_whole.get(b.label, 0) < 2] for c, blobs in labelled.items()}
+        return drop_slivers(labelled, self.cameras, m.min_view_labels, m.min_view_fraction)
 
     def _triangulate_labelled(self, labelled: dict[str, list[Blob2D]],
                               priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:

@@ -63,6 +63,7 @@ from .types import Blob2D, Blob3D, all_finite
 __all__ = [
     "associate_views",
     "blob_extent",
+    "drop_slivers",
     "midpoint",
     "midpoints",
     "triangulate_blob",
@@ -461,6 +462,38 @@ def drop_overlapping_pairs(
         if drop:
             out[name] = [b for b in out[name] if b.label not in drop]
     return out, dropped
+
+
+def drop_slivers(
+    blobs_by_camera: Mapping[str, Sequence[Blob2D]],
+    cameras: Mapping[str, Camera],
+    labels: Iterable[str],
+    min_fraction: float,
+) -> dict[str, list[Blob2D]]:
+    """Leave a sliver of a part out of the views where two or more other views see it whole.
+
+    A blob of one of ``labels`` with fewer pixels than ``min_fraction`` × its camera's image area
+    is a part mostly hidden in that view, or its label holding on to stray pixels (another
+    person's hand): its mean is the least reliable, yet its extent is so small that even weighted
+    by ``small_blob_fraction`` (:func:`triangulate_blobs`) it counts about twice as much as a whole
+    hand elsewhere, and on the wrong thing it pulls the 3-D blob, and with it the next priors,
+    along its ray. It is dropped where two or more other views see the part with at least that
+    many pixels; with fewer it is kept (a ray still helps). This project's addition to the 3-D
+    blobs of ALGORITHMS.md §1; ``min_fraction`` <= 0: nothing is dropped.
+
+    Returns blobs_by_camera without the slivers.
+    """
+    out = {c: list(bl) for c, bl in blobs_by_camera.items()}
+    applies = set(labels)
+    if min_fraction <= 0 or not applies:
+        return out
+    least = {c: min_fraction * cameras[c].width * cameras[c].height for c in out}
+    seen_whole: dict[str, int] = {}  # label -> views whose blob of it has at least `least` pixels
+    for c, blobs in out.items():
+        for label in {b.label for b in blobs if b.pixel_count >= least[c]}:
+            seen_whole[label] = seen_whole.get(label, 0) + 1
+    return {c: [b for b in blobs if b.label not in applies or b.pixel_count >= least[c]
+                or seen_whole.get(b.label, 0) < 2] for c, blobs in out.items()}
 
 
 def associate_views(
