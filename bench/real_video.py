@@ -24,6 +24,9 @@ blob tracker and the default 'baseline' body fit, tunables from ``--blob-config`
   the tracked head joint (the head's centre, ~0.12 m below the cap's centroid) to it tells whether
   the skeleton stays with him (Demo_MultiPerson: not jumping to the woman); frames with more than
   ``--head-off-m`` are counted (``--marker-hsv none`` skips this check on other recordings).
+  Since stop 44 the Pose2Sim configs track the cap itself as the head's blob
+  (config/pose2sim_body_model.yaml), so there this check is no longer independent of the
+  tracker: it shows that the head follows its feature. IoU and ``inside`` stay independent.
 * frames per second of the tracking loop (decoding and checks excluded) and ms per stage.
 
 With ``--pred DIR_OR_BAG`` (e.g. the output bag of the live graph, ``make demo``) the checks are

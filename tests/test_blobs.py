@@ -436,6 +436,37 @@ def test_colour_class_learnt_from_a_wrong_prior_is_learnt_again():
             BlobTrackerConfig(**bad)
 
 
+def test_colour_defaults_start_a_class_from_its_configured_model():
+    """A colour class in ``colour_defaults`` starts from its configured model, as skin does, and is
+    never bootstrapped from its labels' cores: with the first torso prior on a green bag (the wrong
+    start-up pose of the test above) no torso is found on the bag, the shirt class is not learnt
+    from it, and the torso is found from the next frame on (bootstrapped from the bag, the class
+    rejected the torso until relearnt). Bad entries are refused with the field named."""
+    GREEN_BGR = (40, 170, 60)
+    shirt = {"mean": [35 / 280, 80 / 280, 280 / 765], "sigma": [0.03, 0.03, 0.1]}
+    tracker = make_tracker(colour_defaults={"shirt": shirt})
+    assert np.allclose(tracker.colour_model("shirt").mean, shirt["mean"])
+    assert not tracker.colour_model("shirt").learned
+    seed_with_moving_person(tracker)
+    parts = {**default_parts(), "bag": ("ellipse", (70.0, 160.0), (22.0, 30.0), GREEN_BGR)}
+    for t in range(6):
+        img, masks = render(parts, 100 + t)
+        priors = [p for p in priors_for(parts) if p.label in LABELS]
+        if t == 0:
+            next(p for p in priors if p.label == "torso").mean = np.array(parts["bag"][1], float)
+        blobs = by_label(tracker.step(img, priors))
+        assert ("torso" in blobs) == (t > 0), t
+        assert np.allclose(tracker.colour_model("shirt").mean[:2], shirt["mean"][:2], atol=0.02), t
+    ys, xs = np.nonzero(masks["torso"])
+    assert np.linalg.norm(blobs["torso"].mean - [xs.mean(), ys.mean()]) < 1.5
+    assert tracker.colour_relearned == {}
+    for bad, match in (({"skin": shirt}, "skin"), ({"shirt": {"mean": [0.1, 0.2, 0.3]}}, "mean and sigma"),
+                       ({"shirt": {**shirt, "sigma": [0.1, 0.0, 0.1]}}, "positive"),
+                       ({"shirt": {**shirt, "mean": [0.1, 0.2]}}, "three finite"), (["shirt"], "must map")):
+        with pytest.raises(InputError, match=f"colour_defaults.*{match}"):
+            BlobTrackerConfig(colour_defaults=bad)
+
+
 def test_colour_class_is_not_bootstrapped_from_the_ghost_of_the_start_position(monkeypatch):
     """The person stood still while the background seeded, so the model holds their start position;
     on the first labelled frame they stand beside it and the torso's prior sits between the two

@@ -49,7 +49,8 @@ Blob classes. Each tracked label k is a Gaussian over ``o`` with a spatial part
 (mean (2,), covariance (2, 2), px) and a colour part (mean (3,), covariance
 (3, 3)); the colour part is shared by the labels of one colour class (e.g. head
 and hands: 'skin'; thighs and shins: 'trousers'). 'skin' starts from a
-configured model in normalised chroma; a class without a default is bootstrapped
+configured model in normalised chroma, as does any class in ``colour_defaults``
+(e.g. a cap of a colour the room lacks); a class without a default is bootstrapped
 robustly (median / MAD, then trimmed mean and covariance) from the foreground in
 its labels' prior cores (``colour_core_sigma``) on its first labelled frame. All
 classes then follow their labelled core pixels that fit the model
@@ -145,6 +146,7 @@ __all__ = [
     "ColourModel",
     "benchmark",
     "colour_features",
+    "configured_model",
     "skin_model",
 ]
 
@@ -222,6 +224,11 @@ class BlobTrackerConfig:
     #: colour class of a part's blob, overriding the body model's ({label: class}; e.g. a person with a
     #: bare torso and bare shins: {torso: skin, l_shin: skin, r_shin: skin}); empty = the body model's
     part_colours: dict[str, str] = field(default_factory=dict)
+    #: configured start models of colour classes other than skin ({class: {mean: [r, g, I], sigma: [r, g, I]}};
+    #: e.g. a cap of a colour the room lacks): such a class starts from its model, as skin does, instead of
+    #: being bootstrapped from its labels' prior cores, which a start-up pose off the part puts on the
+    #: wrong pixels; empty = every class but skin is bootstrapped
+    colour_defaults: dict[str, dict] = field(default_factory=dict)
     #: sigmas of (r, g, I) of the broad start model of a colour class without a default (mean 1/3, 1/3, 0.5)
     unknown_colour_sigma: tuple[float, float, float] = (0.2, 0.2, 0.5)
     #: colour models are bootstrapped (robustly) and learned only from pixels within this many sigmas
@@ -350,6 +357,24 @@ class BlobTrackerConfig:
             raise bad("part_colours", "must map part labels to colour class names")
         if FOREGROUND in self.part_colours.values():
             raise bad("part_colours", f"cannot use the start-up class '{FOREGROUND}'")
+        if not isinstance(self.colour_defaults, dict):
+            raise bad("colour_defaults", "must map colour class names to {mean: [r, g, I], sigma: [r, g, I]}")
+        defaults = {}
+        for cls, model in self.colour_defaults.items():
+            if not isinstance(cls, str) or cls in (FOREGROUND, SKIN, ""):
+                raise bad("colour_defaults", f"cannot configure the class {cls!r} (skin has skin_mean / skin_sigma)")
+            if not isinstance(model, dict) or set(model) != {"mean", "sigma"}:
+                raise bad("colour_defaults", f"class '{cls}' needs exactly the keys mean and sigma")
+            try:
+                mean, sigma = (tuple(float(x) for x in model[k]) for k in ("mean", "sigma"))
+            except (TypeError, ValueError):
+                raise bad("colour_defaults", f"class '{cls}': mean and sigma must be three numbers each") from None
+            if len(mean) != 3 or len(sigma) != 3 or not all(math.isfinite(x) for x in mean + sigma) \
+                    or min(sigma) <= 0:
+                raise bad("colour_defaults", f"class '{cls}': mean and sigma must be three finite numbers, "
+                          "sigma positive")
+            defaults[cls] = {"mean": mean, "sigma": sigma}
+        self.colour_defaults = defaults
         if self.work_scale > 1.0:
             raise bad("work_scale", "must be in (0, 1]")
         if not -0.95 <= self.skin_rg_correlation <= 0.95:
@@ -453,6 +478,17 @@ def skin_model(config: BlobTrackerConfig) -> ColourModel:
     rho = config.skin_rg_correlation
     cov = np.array([[sr * sr, rho * sr * sg, 0.0], [rho * sr * sg, sg * sg, 0.0], [0.0, 0.0, si * si]])
     return ColourModel(np.array(config.skin_mean, float), cov, False, config.skin_min_intensity)
+
+
+def configured_model(config: BlobTrackerConfig, colour_class: str) -> ColourModel | None:
+    """The configured start model of a colour class: skin's (:func:`skin_model`), one of
+    ``colour_defaults`` (diagonal covariance), or None for a class that is bootstrapped."""
+    if colour_class == SKIN:
+        return skin_model(config)
+    d = config.colour_defaults.get(colour_class)
+    if d is None:
+        return None
+    return ColourModel(np.array(d["mean"], float), np.diag(np.square(d["sigma"])), False, 0.0)
 
 
 def _unknown_model(config: BlobTrackerConfig) -> ColourModel:
@@ -785,7 +821,7 @@ class BlobTracker2D:
         """Current colour model of a colour class (the configured default until learned)."""
         m = self.colour_models.get(colour_class)
         if m is None:
-            m = skin_model(self.config) if colour_class == SKIN else _unknown_model(self.config)
+            m = configured_model(self.config, colour_class) or _unknown_model(self.config)
             self.colour_models[colour_class] = m
         return m
 
@@ -1153,7 +1189,7 @@ class BlobTracker2D:
         core is all room-coloured waits for a later frame."""
         for cls, core in sorted(core_fg.items()):
             model = self.colour_model(cls)
-            if model.learned or cls == SKIN:
+            if model.learned or cls == SKIN or cls in self.config.colour_defaults:
                 continue
             c = core.astype(float)
             if c.shape[0] < self._min_pixels():
@@ -1175,7 +1211,7 @@ class BlobTracker2D:
             model.learned = True
 
     def _check_stale_colours(self, core_fg: dict[str, np.ndarray]) -> None:
-        """Count, per learned colour class (not skin), the frames in a row in which the median
+        """Count, per learned colour class (not skin nor one of ``colour_defaults``), the frames in a row in which the median
         colour of the foreground in its labels' cores (``core_fg``, see ``_core_colours``) lay
         outside the model's ``colour_learn_gate``; after ``colour_relearn_frames`` such frames the
         class is marked unlearned, so that the next frame bootstraps it again from the cores
@@ -1186,7 +1222,8 @@ class BlobTracker2D:
             return
         for cls, c in sorted(core_fg.items()):
             model = self.colour_models.get(cls)
-            if cls == SKIN or model is None or not model.learned or c.shape[0] < self._min_pixels():
+            if cls == SKIN or cls in cfg.colour_defaults or model is None or not model.learned \
+                    or c.shape[0] < self._min_pixels():
                 continue
             median = np.median(c, axis=0)[None]
             if float(model.distance2(median, cfg)[0]) > cfg.colour_learn_gate**2:
