@@ -1211,12 +1211,13 @@ class BlobTracker2D:
             model.learned = True
 
     def _check_stale_colours(self, core_fg: dict[str, np.ndarray]) -> None:
-        """Count, per learned colour class (not skin nor one of ``colour_defaults``), the frames in a row in which the median
-        colour of the foreground in its labels' cores (``core_fg``, see ``_core_colours``) lay
-        outside the model's ``colour_learn_gate``; after ``colour_relearn_frames`` such frames the
-        class is marked unlearned, so that the next frame bootstraps it again from the cores
-        (``_bootstrap_colours``). Frames with fewer than ``min_blob_pixels`` core
-        foreground pixels (the part hidden, or its prior off the person) do not count."""
+        """Count, per learned colour class (not skin nor one of ``colour_defaults``), the frames in
+        a row in which the median colour of the foreground in its labels' cores (``core_fg``, see
+        ``_core_colours``) lay outside the model's ``colour_learn_gate``; after
+        ``colour_relearn_frames`` such frames the class is marked unlearned, so that the next frame
+        bootstraps it again from the cores (``_bootstrap_colours``). Frames with fewer than
+        ``min_blob_pixels`` core foreground pixels (the part hidden, or its prior off the person) do
+        not count."""
         cfg = self.config
         if cfg.colour_relearn_frames <= 0:
             return
