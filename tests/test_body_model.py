@@ -213,13 +213,21 @@ def test_error_names_file(tmp_path, raw):
 
 def test_extends_with_link_overrides(body, tmp_path):
     """A variant file takes the base body and changes only what it names: the Pose2Sim body
-    adds skin blobs on the upper arms and keeps the pelvis' and thighs' earlier blob centres (stop
-    42), everything else (links, limits, shapes, joints, the other blobs) equal."""
+    adds skin blobs on the upper arms and the (bare, so skin-coloured) feet, puts the head's blob on
+    the cap (class 'hair', 'auto': the head's hair-coloured shape, stop 44) and keeps the pelvis' and
+    thighs' earlier blob centres (stop 42), everything else (links, limits, shapes, joints, the other
+    blobs) equal."""
     variant = load_body_model(CONFIG.parent / "pose2sim_body_model.yaml")
     assert variant.link_names == body.link_names and variant.joint_names == body.joint_names
     assert np.array_equal(variant.lower, body.lower) and np.array_equal(variant.upper, body.upper)
     assert variant.blob_labels == ["pelvis", "torso", "head", "l_upper_arm", "l_hand", "r_upper_arm", "r_hand",
-                                   "l_thigh", "l_shin", "r_thigh", "r_shin"]
+                                   "l_thigh", "l_shin", "l_foot", "r_thigh", "r_shin", "r_foot"]
+    head = variant.link("head").blob
+    assert head.colour == "hair" and head.centre[2] > 0.15  # on top of the head, not at the face (0.058)
+    for side in "lr":
+        foot = variant.link(f"{side}_foot")
+        assert foot.colour == "skin" and foot.blob.colour == "skin" and body.link(f"{side}_foot").blob is None
+        assert foot.blob.centre[0] > 0.03  # towards the toes
     for side in "lr":
         blob = variant.link(f"{side}_upper_arm").blob
         assert blob.colour == "skin"
