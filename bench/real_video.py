@@ -14,6 +14,11 @@ blob tracker and the default 'baseline' body fit, tunables from ``--blob-config`
   per-block temporal medians of blocks far in time (``artrack.silhouette.reference_foreground``:
   the person has moved away from where they stand now, so the room shows through). Frames
   without an estimate count as IoU 0.
+* ``on ±3`` / ``cov. ±3``: where the IoU's misses lie, at a tolerance of ``--tolerance-px``: the
+  share of the model's pixels within it of the reference mask, and of the mask's within it of
+  the model, over the tracked frames (``artrack.silhouette.tolerant_overlap``). Printed with
+  them: the IoU of the reference mask with itself moved by that many pixels, the strict IoU's
+  ceiling for a pose or calibration offset that small.
 * ``inside``: share of projected joints inside the reference mask dilated by ``--dilate-px``
   (joint-frames without an estimate count as outside).
 * ``LOO IoU``: leave-one-camera-out, the IoU in a camera of the body tracked with the three
@@ -71,6 +76,8 @@ from artrack.silhouette import (  # noqa: E402
     joint_speeds,
     joints_inside,
     reference_foreground,
+    shifted_iou,
+    tolerant_overlap,
 )
 from artrack.video import open_videos  # noqa: E402
 
@@ -182,6 +189,26 @@ def view_ious(silhouette: BodySilhouette, estimates, refs, names: list[str]) -> 
     return out
 
 
+def view_overlaps(silhouette: BodySilhouette, estimates, refs, names: list[str], tol_px: int):
+    """Per view, the means over the tracked frames of ``tolerant_overlap`` (model on the reference,
+    reference covered by the model), and the mean IoU of each frame's reference with itself moved
+    ``tol_px`` (frames with an empty reference left out)."""
+    on = {n: [] for n in names}
+    covered = {n: [] for n in names}
+    for t, est in enumerate(estimates):
+        masks = silhouette.masks(est) if est is not None else None
+        if masks is None:
+            continue
+        for n in names:
+            a, b = tolerant_overlap(masks[n], refs[t][n], tol_px)
+            on[n].append(a)
+            covered[n].append(b)
+    shifted = {n: [shifted_iou(r[n], tol_px) for r in refs if r[n].any()] for n in names}
+    mean = {n: (float(np.mean(on[n])) if on[n] else float("nan"), float(np.mean(covered[n])) if covered[n]
+                else float("nan"), float(np.mean(shifted[n])) if shifted[n] else float("nan")) for n in names}
+    return mean
+
+
 def draw_frame(cameras, images, joints, joint_names, blobs) -> list[np.ndarray]:
     return [draw_body(images[c.name], c, None if not np.isfinite(joints).all() else joints, joint_names,
                       blobs2d=blobs.get(c.name), frame=None) for c in cameras]
@@ -207,6 +234,8 @@ def main() -> int:
     ap.add_argument("--pred", type=Path, default=None, help="check this tracking output instead (bag or track folder)")
     ap.add_argument("--no-loo", action="store_true", help="skip the leave-one-camera-out runs")
     ap.add_argument("--dilate-px", type=int, default=6, help="dilation of the reference mask for 'inside', px")
+    ap.add_argument("--tolerance-px", type=int, default=3,
+                    help="tolerance of the 'on' / 'covered' shares and of the shifted reference's IoU, px")
     ap.add_argument("--marker-hsv", default="84,120,60,100,255,255",
                     help="HSV range (low h,s,v,high h,s,v; OpenCV hue 0..180) of a marker worn on the head (default: "
                          "the Pose2Sim man's cyan cap), or 'none'")
@@ -250,6 +279,7 @@ def run(args) -> int:
     silhouette = BodySilhouette(body, cameras)
     t0 = time.perf_counter()
     ious = view_ious(silhouette, estimates, refs, names)
+    overlaps = view_overlaps(silhouette, estimates, refs, names, args.tolerance_px)
     sil_ms = (time.perf_counter() - t0) * 1e3 / len(frames)
 
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * args.dilate_px + 1,) * 2)
@@ -294,11 +324,18 @@ def run(args) -> int:
           f"{fps_clip:g} fps; {src}")
     print(f"tracked frames: {int(tracked.sum())}/{len(frames)} (first at frame "
           f"{int(np.argmax(tracked)) if tracked.any() else '-'})")
-    print(f"{'view':<8}{'mean IoU':>10}{'IoU tracked':>13}{'LOO IoU':>10}{'inside %':>10}")
+    tol = f"±{args.tolerance_px}"
+    print(f"{'view':<8}{'mean IoU':>10}{'IoU tracked':>13}{'LOO IoU':>10}{'inside %':>10}{'on ' + tol:>9}"
+          f"{'cov. ' + tol:>9}{'ref. moved ' + str(args.tolerance_px):>14}")
     for n in names:
         tr = ious[n][tracked].mean() if tracked.any() else float('nan')
         lo = f"{loo[n]:10.3f}" if loo[n] is not None else f"{'-':>10}"
-        print(f"{n:<8}{ious[n].mean():10.3f}{tr:13.3f}{lo}{100 * inside[n].mean():10.1f}")
+        on, cov, moved = overlaps[n]
+        print(f"{n:<8}{ious[n].mean():10.3f}{tr:13.3f}{lo}{100 * inside[n].mean():10.1f}{on:9.2f}{cov:9.2f}"
+              f"{moved:14.2f}")
+    print(f"(on / cov. {tol}: the model's pixels within {args.tolerance_px} px of the reference mask / the mask's "
+          f"within {args.tolerance_px} px of the model; ref. moved {args.tolerance_px}: the IoU of the reference "
+          f"with itself moved {args.tolerance_px} px)")
     print(f"joints inside the dilated foreground ({args.dilate_px} px): {100 * inside_share:.1f} % of joint-frames")
     if tracked.any():  # where the misses are: per joint, over the tracked frames and the views
         per_joint = np.mean([inside[n][tracked] for n in names], axis=(0, 1))
@@ -348,6 +385,10 @@ def run(args) -> int:
         "tracked_frames": int(tracked.sum()),
         "inside_foreground_share": round(inside_share, 4),
         "mean_iou": {n: round(float(ious[n].mean()), 4) for n in names},
+        "tolerance_px": args.tolerance_px,
+        "model_on_reference": {n: round(overlaps[n][0], 4) for n in names},
+        "reference_covered": {n: round(overlaps[n][1], 4) for n in names},
+        "reference_moved_iou": {n: round(overlaps[n][2], 4) for n in names},
         "loo_iou": {n: (None if v is None else round(v, 4)) for n, v in loo.items()},
         "max_joint_speed": None if max_speed is None else round(max_speed, 3),
         "joint_steps_above_10mps": flagged,

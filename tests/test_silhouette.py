@@ -6,7 +6,15 @@ import numpy as np
 
 from artrack.body_model import load_body_model
 from artrack.cameras import Camera
-from artrack.silhouette import BodySilhouette, iou, joint_speeds, joints_inside, reference_foreground
+from artrack.silhouette import (
+    BodySilhouette,
+    iou,
+    joint_speeds,
+    joints_inside,
+    reference_foreground,
+    shifted_iou,
+    tolerant_overlap,
+)
 from artrack.synth import Renderer, default_rig
 from artrack.types import BodyEstimate, LinkEstimate
 
@@ -48,6 +56,26 @@ def test_iou_inside_and_speeds():
     s = joint_speeds(stamps, joints)
     np.testing.assert_allclose(s[:, 0], [5.0, 0.0])
     assert s[0, 1] == 0.0 and np.isnan(s[1, 1])
+
+
+def test_tolerant_overlap_and_shifted_iou():
+    """A 10 x 10 square against the same square 2 px to the right: strict IoU 80 / 120; within 2 px
+    every pixel of each lies near the other, within 1 px 90 %; the shifted IoU is that same 80 / 120.
+    A model pixel far from the reference counts against the first share only."""
+    a = np.zeros((20, 30), bool)
+    a[5:15, 5:15] = True
+    b = np.zeros((20, 30), bool)
+    b[5:15, 7:17] = True
+    assert iou(a, b) == shifted_iou(a, 2) == 80 / 120
+    assert tolerant_overlap(b, a, 2) == (1.0, 1.0)
+    np.testing.assert_allclose(tolerant_overlap(b, a, 1), (0.9, 0.9))
+    assert tolerant_overlap(b, a, 0) == (0.8, 0.8)
+    far = b.copy()
+    far[0, 29] = True
+    on, covered = tolerant_overlap(far, a, 2)
+    assert on == 100 / 101 and covered == 1.0
+    assert tolerant_overlap(np.zeros_like(a), a, 2) == (1.0, 0.0)
+    assert shifted_iou(a, 0) == 1.0 and shifted_iou(a, 30) == 0.0
 
 
 def test_body_silhouette_matches_the_renderer_at_the_same_pose():
