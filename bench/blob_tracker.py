@@ -32,7 +32,8 @@ Ends with one JSON line: mpjpe_mm, head_hands_rms_mm, line_ratio, rotation_ratio
 ``_settled`` versions), occlusion_max_hand_err_mm_feedback,
 occlusion_max_hand_err_mm_no_feedback, fps_320x240, fps_640x480 (all for the ``--skeleton``
 estimator, feedback on), plus the occlusion frame counts and the phases' figures (``*_settled``:
-without the start-up frames), the raw tracker's, the raw tracker's with the edge features
+without the start-up frames), head + hands at their blob centres
+(``head_hands_blob_centres_rms_mm``, ``bench/closed_loop.py``), the raw tracker's, the raw tracker's with the edge features
 fused (``baseline+edges``, section 1) and the oracle's figures for comparison. Run from the
 repository root (about 15 min on 2 cores)::
 
@@ -184,11 +185,17 @@ def main() -> int:
                   f"{fmt(r['limbs_mm'])}{100 * r['tracked']:10.0f}", flush=True)
     print(f"phases of the tracked runs (bench/closed_loop.py: the first {cl.STARTUP_FRAMES} tracked frames, then the "
           "walk, then the arms overhead; mm)")
-    print(f"{'estimator':<11}{'start-up':>9}{'walk':>7}{'after walk':>11}{'settled':>9}{'head+hands RMS settled':>24}")
+    print(f"{'estimator':<11}{'start-up':>9}{'walk':>7}{'after walk':>11}{'settled':>9}{'head+hands RMS settled':>24}"
+          f"{'at blob centres: all':>22}{'settled':>9}")
     for e in estimators:
         r = res[("default", e, "tracked")]
         print(f"{e:<11}{fmt(r['startup_mm'])}{fmt(r['walk_mm'], '7.1f')}{fmt(r['after_walk_mm'], '11.1f')}"
-              f"{fmt(r['settled_mm'])}{fmt(r['head_hands_rms_settled_mm'], '24.1f')}", flush=True)
+              f"{fmt(r['settled_mm'])}{fmt(r['head_hands_rms_settled_mm'], '24.1f')}"
+              f"{fmt(r.get('head_hands_blob_centres_rms_mm', float('nan')), '22.1f')}"
+              f"{fmt(r.get('head_hands_blob_centres_rms_settled_mm', float('nan')))}", flush=True)
+    print("(head + hands at the blob centres: the head's and hands' blob centres on the estimated and the true link "
+          "poses; the joint figure, the head joint and the wrists, also carries the head's pitch and the hand's turn "
+          "that no blob observes)")
     # the raw tracker with the edge features fused (ALGORITHMS.md §2 "Fusion"; issue 4's blobs + edges)
     r = res[("default", "baseline+edges", "tracked")] = cl.run(bag("default"), "default", "baseline+edges", True, body)
     print(f"{'baseline+edges':<20}{fmt(r['mpjpe_mm'])}{fmt(r['head_hands_rms_mm'], '19.1f')}"
@@ -265,6 +272,10 @@ def main() -> int:
         "occlusion_frames_over_150mm_feedback_settled": res[("occlusion", sk, True)]["frames_over_150mm_settled"],
         "mpjpe_mm_settled": res[("default", sk, "tracked")]["settled_mm"],
         "head_hands_rms_mm_settled": res[("default", sk, "tracked")]["head_hands_rms_settled_mm"],
+        "head_hands_blob_centres_rms_mm": res[("default", sk, "tracked")].get("head_hands_blob_centres_rms_mm",
+                                                                             float("nan")),
+        "head_hands_blob_centres_rms_mm_settled": res[("default", sk, "tracked")].get(
+            "head_hands_blob_centres_rms_settled_mm", float("nan")),
         "fps_320x240": fps.get((sk, 320, 240), float("nan")),
         "fps_640x480": fps.get((sk, 640, 480), float("nan")),
         "raw_mpjpe_mm": res[("default", raw, "tracked")]["mpjpe_mm"],

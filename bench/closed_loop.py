@@ -42,6 +42,12 @@ them, ``head_hands_rms_settled_mm`` likewise; on the scenes that start with the 
 ``after_walk_mm`` (from then on: both arms overhead in ``default``, the hand behind the back in
 ``occlusion``).
 
+Head and hands are also scored where their blobs measure them (``head_hands_blob_centres_rms_mm``
+and ``..._settled_mm``): the body model's blob centres of the head and the hands on the estimated
+and on the true link poses (the scene's motion replayed), RMS over the three. The joint figure
+(the head joint, the wrists) also carries what no blob observes: the head's pitch about the neck
+and the hand's turn about the wrist (``blob_points``).
+
 Ends with one JSON line of all rows. Deterministic (seeded scenes, no randomness in the
 tracker); wall-clock times vary with the machine load. Run from the repository root::
 
@@ -202,9 +208,39 @@ def claim_text(r: dict) -> str:
     return "-"
 
 
-def score(name: str, body, stamps: list[int], est: list, tru: list, n_truth: int) -> dict:
+BLOB_POINT_LINKS = ("head", "l_hand", "r_hand")  # head + hands as the blobs see them (blob_points())
+
+
+def blob_points(name: str, body, stamp: int, links, true_joints) -> tuple[np.ndarray, np.ndarray] | None:
+    """Head and hands where their blobs measure them: the body model's blob centres of
+    :data:`BLOB_POINT_LINKS` on the estimated link poses (``links``, LinkEstimate list) and on the
+    true ones (the scene's motion replayed, ``motion.pose_at``), as ((3, 3) estimated, (3, 3) true),
+    m. The head + hands figure over joints (the head joint, the wrists) also carries what no
+    blob observes: the head's pitch about the neck, the hand's turn about the wrist. None if the
+    estimate lacks a link, or the replayed truth is not the scene's: its joints differ from the
+    recorded ``true_joints`` (J, 3) by more than 1 mm (e.g. tracking with another body model)."""
+    index = {n: i for i, n in enumerate(body.link_names)}
+    by_name = {lk.name: lk for lk in links}
+    if any(n not in by_name or body.links[index[n]].blob is None for n in BLOB_POINT_LINKS):
+        return None
+    motion = SceneConfig(**SCENES[name]).motion_name
+    theta = pose_at(motion, float(motion_time(name, [stamp])[0]), body)
+    T = body.forward_kinematics(theta)
+    if np.abs(body.joint_positions(theta, T) - np.asarray(true_joints).reshape(-1, 3)).max() > 1e-3:
+        return None
+    est, tru = np.empty((3, 3)), np.empty((3, 3))
+    for k, n in enumerate(BLOB_POINT_LINKS):
+        c = body.links[index[n]].blob.centre
+        est[k] = by_name[n].position + by_name[n].rotation @ c
+        tru[k] = T[index[n], :3, 3] + T[index[n], :3, :3] @ c
+    return est, tru
+
+
+def score(name: str, body, stamps: list[int], est: list, tru: list, n_truth: int,
+          points: list | None = None) -> dict:
     """Accuracy figures of one run: MPJPE, limbs, head+hands RMS (mm), tracked share and the
-    scene's claim, from the per-frame (J, 3) estimates and truth of the tracked frames."""
+    scene's claim, from the per-frame (J, 3) estimates and truth of the tracked frames;
+    ``points``: per tracked frame, blob_points()'s (estimated, true) head and hands or None."""
     n_j = len(body.joint_names)
     est_a, tru_a = np.asarray(est).reshape(-1, n_j, 3), np.asarray(tru).reshape(-1, n_j, 3)
     err = np.linalg.norm(est_a - tru_a, axis=2)  # (T, J) m
@@ -212,12 +248,19 @@ def score(name: str, body, stamps: list[int], est: list, tru: list, n_truth: int
     limbs = limb_joint_indices(names)
     head_hands = [names.index(n) for n in ("head", "l_wrist", "r_wrist")]
     nan = float("nan")
+    centres = {}
+    if points is not None and len(points) and all(p is not None for p in points):
+        perr = np.array([np.linalg.norm(e - t, axis=1) for e, t in points])  # (T, 3) m
+        rms = lambda e: 1e3 * float(np.sqrt(np.mean(e**2))) if e.size else nan  # noqa: E731
+        centres = {"head_hands_blob_centres_rms_mm": rms(perr),
+                   "head_hands_blob_centres_rms_settled_mm": rms(perr[STARTUP_FRAMES:])}
     return {
         "mpjpe_mm": 1e3 * float(err.mean()) if len(est) else nan,
         "limbs_mm": 1e3 * float(err[:, limbs].mean()) if len(est) else nan,
         "head_hands_rms_mm": 1e3 * float(np.sqrt(np.mean(err[:, head_hands] ** 2))) if len(est) else nan,
         "tracked": len(est) / max(n_truth, 1),
         **phases(name, stamps, err, head_hands),
+        **centres,
         **claim(name, body, stamps, est_a, tru_a),
     }
 
@@ -242,7 +285,8 @@ def phases(name: str, stamps: list[int], err: np.ndarray, head_hands: list[int])
 def phases_text(rows: list[dict]) -> str:
     """The phases' means over the seeds' rows, for the line after a mean row."""
     keys = [("startup_mm", "start-up {:.1f}"), ("walk_mm", "walk {:.1f}"), ("after_walk_mm", "after the walk {:.1f}"),
-            ("settled_mm", "settled {:.1f}"), ("head_hands_rms_settled_mm", "head + hands RMS settled {:.1f}")]
+            ("settled_mm", "settled {:.1f}"), ("head_hands_rms_settled_mm", "head + hands RMS settled {:.1f}"),
+            ("head_hands_blob_centres_rms_settled_mm", "at the blob centres {:.1f}")]
     parts = [fmt.format(float(np.nanmean([r[k] for r in rows]))) for k, fmt in keys if all(k in r for r in rows)]
     return f"phases, mean over the seeds (mm): {', '.join(parts)}"
 
@@ -260,7 +304,7 @@ def run(path: Path, name: str, estimator: str, feedback: bool, body, true_start:
         if not 0 <= true_start < len(frames) or int(frames[true_start][0]) not in truth:
             raise SystemExit(f"closed_loop: --true-start {true_start}: {path} has no ground truth at that frame")
         truth = {s: j for s, j in truth.items() if s >= int(frames[true_start][0])}
-    stamps, est, tru, stage = [], [], [], {}
+    stamps, est, tru, points, stage = [], [], [], [], {}
     t0 = time.perf_counter()
     for index, (stamp, images) in enumerate(frames):
         if index == true_start:
@@ -273,9 +317,10 @@ def run(path: Path, name: str, estimator: str, feedback: bool, body, true_start:
             stamps.append(int(stamp))
             est.append(j)
             tru.append(truth[int(stamp)])
+            points.append(blob_points(name, body, int(stamp), res.estimate.links, truth[int(stamp)]))
     elapsed = time.perf_counter() - t0
     return {
-        **score(name, body, stamps, est, tru, sum(int(s) in truth for s, _ in frames)),
+        **score(name, body, stamps, est, tru, sum(int(s) in truth for s, _ in frames), points),
         "fps": len(frames) / elapsed,
         # per-stage means over all frames (a sub-stage absent in a frame counts as 0 there)
         **{f"{k}_ms": float(np.sum(v) / len(frames)) for k, v in stage.items()},

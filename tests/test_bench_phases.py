@@ -95,6 +95,33 @@ def _run_closed_loop(*args):
     return subprocess.run([sys.executable, str(bench), *args], capture_output=True, text=True, timeout=120)
 
 
+def test_blob_points_are_the_blob_centres_on_the_link_poses(closed_loop):
+    """Head and hands at their blob centres: zero error for the true link poses (the default
+    scene's motion replayed at the frame's stamp), the hand's offset turned with its link for a
+    turned hand; None for a recorded truth the replay does not match, or a missing link."""
+    cl = closed_loop
+    from artrack.motion import pose_at
+    from artrack.types import LinkEstimate
+
+    body = load_body_model()
+    stamp = _stamps([2.0])[0]
+    theta = pose_at("default", 2.0, body)
+    T = body.forward_kinematics(theta)
+    joints = body.joint_positions(theta, T)
+    links = [LinkEstimate(n, T[i, :3, 3].copy(), T[i, :3, :3].copy()) for i, n in enumerate(body.link_names)]
+    est, tru = cl.blob_points("default", body, stamp, links, joints)
+    np.testing.assert_allclose(est, tru, atol=1e-12)
+    hand = next(lk for lk in links if lk.name == "r_hand")
+    hand.rotation = hand.rotation @ np.diag([1.0, -1.0, -1.0])  # turned half round its own x axis
+    est, tru = cl.blob_points("default", body, stamp, links, joints)
+    c = body.link("r_hand").blob.centre
+    assert np.linalg.norm(est[2] - tru[2]) == pytest.approx(2 * np.hypot(c[1], c[2]), abs=1e-12)
+    assert np.linalg.norm(est[2] - tru[2]) > 0.1
+    np.testing.assert_allclose(est[:2], tru[:2], atol=1e-12)
+    assert cl.blob_points("default", body, stamp, links, joints + 0.01) is None
+    assert cl.blob_points("default", body, stamp, [lk for lk in links if lk.name != "head"], joints) is None
+
+
 def test_body_option_refuses_a_bad_model_before_rendering(tmp_path):
     bad = tmp_path / "bad_body.yaml"
     bad.write_text("links: 3\n")
