@@ -33,9 +33,9 @@ Ends with one JSON line: mpjpe_mm, head_hands_rms_mm, line_ratio, rotation_ratio
 occlusion_max_hand_err_mm_no_feedback, fps_320x240, fps_640x480 (all for the ``--skeleton``
 estimator, feedback on), plus the occlusion frame counts and the phases' figures (``*_settled``:
 without the start-up frames), head + hands at their blob centres
-(``head_hands_blob_centres_rms_mm``, ``bench/closed_loop.py``), the raw tracker's, the raw tracker's with the edge features
-fused (``baseline+edges``, section 1) and the oracle's figures for comparison. Run from the
-repository root (about 15 min on 2 cores)::
+(``head_hands_blob_centres_rms_mm``, ``bench/closed_loop.py``), the raw tracker's, the raw
+tracker's with the edge features fused (``baseline+edges``, section 1) and the oracle's figures
+for comparison. Run from the repository root (about 15 min on 2 cores)::
 
     .venv/bin/python bench/blob_tracker.py
     .venv/bin/python bench/blob_tracker.py --skeleton baseline     # the graph's default estimator
