@@ -69,6 +69,28 @@ def test_occlusion_claim_without_the_start_up_frames(closed_loop):
     assert c["frames_over_150mm_settled"] == 1 and c["frames_over_150mm"] == cl.STARTUP_FRAMES + 1
 
 
+def test_distractor_claim_counts_jumps_on_the_other_person_apart(closed_loop):
+    """A frame whose head or wrist lies nearer the second person's same joint than the true one is a
+    jump frame; it is also on the other person only within ``JUMP_NEAR_M`` of that joint: a hand
+    lost far from both people is nearer one of them, but on neither."""
+    cl = closed_loop
+    from artrack.motion import pose_at
+
+    body = load_body_model()
+    names = list(body.joint_names)
+    times = np.arange(20) / 30 + 1.0
+    stamps = _stamps(times)
+    other = np.array([body.joint_positions(pose_at("distractor", float(t), body))
+                      for t in cl.motion_time("distractor", stamps)])
+    truth = other + np.array([2.0, 0.0, 0.0])  # the tracked person 2 m away
+    est = truth.copy()
+    r = names.index("r_wrist")
+    est[3, r] = other[3, r] + [0.05, 0.0, 0.0]  # on the other person's wrist
+    est[7, r] = other[7, r] + [0.9, 0.0, 0.5]  # lost: nearer the other person, but far from both
+    c = cl.claim("distractor", body, stamps, est, truth)
+    assert c == {"jump_frames": 2, "jump_frames_near_other": 1}
+
+
 def test_smoothed_line_keeps_a_bow_and_drops_the_jitter(closed_loop):
     """The line claim's smoothed figure: frame-to-frame jitter goes, a slow bow of the path stays."""
     cl = closed_loop
