@@ -307,7 +307,7 @@ def run(path: Path, name: str, estimator: str, feedback: bool, body, true_start:
         if not 0 <= true_start < len(frames) or int(frames[true_start][0]) not in truth:
             raise SystemExit(f"closed_loop: --true-start {true_start}: {path} has no ground truth at that frame")
         truth = {s: j for s, j in truth.items() if s >= int(frames[true_start][0])}
-    stamps, est, tru, points, stage = [], [], [], [], {}
+    stamps, est, tru, links, stage = [], [], [], [], {}
     t0 = time.perf_counter()
     for index, (stamp, images) in enumerate(frames):
         if index == true_start:
@@ -320,8 +320,9 @@ def run(path: Path, name: str, estimator: str, feedback: bool, body, true_start:
             stamps.append(int(stamp))
             est.append(j)
             tru.append(truth[int(stamp)])
-            points.append(blob_points(name, body, int(stamp), res.estimate.links, truth[int(stamp)]))
+            links.append(res.estimate.links)
     elapsed = time.perf_counter() - t0
+    points = [blob_points(name, body, s, lk, j) for s, lk, j in zip(stamps, links, tru, strict=True)]  # untimed
     return {
         **score(name, body, stamps, est, tru, sum(int(s) in truth for s, _ in frames), points),
         "fps": len(frames) / elapsed,
