@@ -177,36 +177,36 @@ def joints_array(estimates, n_joints: int) -> np.ndarray:
     return out
 
 
-def view_ious(silhouette: BodySilhouette, estimates, refs, names: list[str]) -> dict[str, np.ndarray]:
-    """Per view, (T,) IoU of the projected body model with the reference mask (0 without an estimate)."""
-    out = {n: np.zeros(len(estimates)) for n in names}
-    for t, est in enumerate(estimates):
-        masks = silhouette.masks(est) if est is not None else None
-        if masks is None:
-            continue
-        for n in names:
-            out[n][t] = iou(masks[n], refs[t][n])
+def model_masks(silhouette: BodySilhouette, estimates) -> list[dict[str, np.ndarray] | None]:
+    """Per frame, the projected body model's {camera: mask}, or None without an estimate."""
+    return [silhouette.masks(est) if est is not None else None for est in estimates]
+
+
+def view_ious(masks, refs, names: list[str]) -> dict[str, np.ndarray]:
+    """Per view, (T,) IoU of the projected body model (``model_masks``) with the reference mask (0
+    without an estimate)."""
+    out = {n: np.zeros(len(masks)) for n in names}
+    for t, m in enumerate(masks):
+        if m is not None:
+            for n in names:
+                out[n][t] = iou(m[n], refs[t][n])
     return out
 
 
-def view_overlaps(silhouette: BodySilhouette, estimates, refs, names: list[str], tol_px: int):
+def view_overlaps(masks, refs, names: list[str], tol_px: int) -> dict[str, tuple[float, float, float]]:
     """Per view, the means over the tracked frames of ``tolerant_overlap`` (model on the reference,
-    reference covered by the model), and the mean IoU of each frame's reference with itself moved
-    ``tol_px`` (frames with an empty reference left out)."""
-    on = {n: [] for n in names}
-    covered = {n: [] for n in names}
-    for t, est in enumerate(estimates):
-        masks = silhouette.masks(est) if est is not None else None
-        if masks is None:
-            continue
-        for n in names:
-            a, b = tolerant_overlap(masks[n], refs[t][n], tol_px)
-            on[n].append(a)
-            covered[n].append(b)
-    shifted = {n: [shifted_iou(r[n], tol_px) for r in refs if r[n].any()] for n in names}
-    mean = {n: (float(np.mean(on[n])) if on[n] else float("nan"), float(np.mean(covered[n])) if covered[n]
-                else float("nan"), float(np.mean(shifted[n])) if shifted[n] else float("nan")) for n in names}
-    return mean
+    reference covered by the model; ``model_masks``), and the mean IoU of each frame's reference with
+    itself moved ``tol_px`` (frames with an empty reference left out)."""
+    def mean(values) -> float:
+        return float(np.mean(values)) if len(values) else float("nan")
+
+    out = {}
+    for n in names:
+        shares = np.array([tolerant_overlap(m[n], refs[t][n], tol_px) for t, m in enumerate(masks)
+                           if m is not None]).reshape(-1, 2)
+        moved = [shifted_iou(r[n], tol_px) for r in refs if r[n].any()]
+        out[n] = (mean(shares[:, 0]), mean(shares[:, 1]), mean(moved))
+    return out
 
 
 def draw_frame(cameras, images, joints, joint_names, blobs) -> list[np.ndarray]:
@@ -278,8 +278,9 @@ def run(args) -> int:
 
     silhouette = BodySilhouette(body, cameras)
     t0 = time.perf_counter()
-    ious = view_ious(silhouette, estimates, refs, names)
-    overlaps = view_overlaps(silhouette, estimates, refs, names, args.tolerance_px)
+    masks = model_masks(silhouette, estimates)
+    ious = view_ious(masks, refs, names)
+    overlaps = view_overlaps(masks, refs, names, args.tolerance_px)
     sil_ms = (time.perf_counter() - t0) * 1e3 / len(frames)
 
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * args.dilate_px + 1,) * 2)
@@ -295,7 +296,7 @@ def run(args) -> int:
         for c in cameras:
             rest = [k for k in cameras if k.name != c.name]
             est_c, _, _, _ = track(body, rest, frames, stamps, config, f"loo-{c.name}", args.quiet)
-            loo[c.name] = float(view_ious(silhouette, est_c, refs, [c.name])[c.name].mean())
+            loo[c.name] = float(view_ious(model_masks(silhouette, est_c), refs, [c.name])[c.name].mean())
 
     head_dist = np.full(len(frames), np.nan)
     if args.marker_hsv != "none":
