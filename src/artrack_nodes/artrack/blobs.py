@@ -396,6 +396,11 @@ class BlobTrackerConfig:
         if 0 < self.background_max_sigma < self.background_min_sigma:
             raise bad("background_max_sigma", "must be 0 (no cap) or at least background_min_sigma")
 
+    def has_start_model(self, colour_class: str) -> bool:
+        """Whether a colour class starts from a configured model (skin, or one of ``colour_defaults``):
+        such a class is never bootstrapped from its labels' cores nor relearned (:func:`configured_model`)."""
+        return colour_class == SKIN or colour_class in self.colour_defaults
+
     @property
     def colour_floor(self) -> np.ndarray:
         """(3,) the colour sigmas' floors in (r, g, I): ``colour_min_sigma_chroma`` twice, then
@@ -1189,7 +1194,7 @@ class BlobTracker2D:
         core is all room-coloured waits for a later frame."""
         for cls, core in sorted(core_fg.items()):
             model = self.colour_model(cls)
-            if model.learned or cls == SKIN or cls in self.config.colour_defaults:
+            if model.learned or self.config.has_start_model(cls):
                 continue
             c = core.astype(float)
             if c.shape[0] < self._min_pixels():
@@ -1223,8 +1228,7 @@ class BlobTracker2D:
             return
         for cls, c in sorted(core_fg.items()):
             model = self.colour_models.get(cls)
-            if cls == SKIN or cls in cfg.colour_defaults or model is None or not model.learned \
-                    or c.shape[0] < self._min_pixels():
+            if cfg.has_start_model(cls) or model is None or not model.learned or c.shape[0] < self._min_pixels():
                 continue
             median = np.median(c, axis=0)[None]
             if float(model.distance2(median, cfg)[0]) > cfg.colour_learn_gate**2:

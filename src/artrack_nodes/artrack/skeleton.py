@@ -1171,14 +1171,12 @@ class _Estimator:
         #: re-acquired part -> (its shoulder: the origin of the top link of its chain below the nearest
         #: ancestor with a blob, the chain's length down to the part's blob centre, m)
         self._reacquire_chain = {lab: self._chain_below_blob(lab) for lab in t.reacquire_labels}
-        unknown = sorted(set(t.reach_gate_labels) - self.labels)
-        if unknown:
-            raise InputError(f"skeleton config: field 'tracking.reach_gate_labels' names '{unknown[0]}', which "
-                             f"is not a blob label of the body model ({sorted(self.labels)})")
-        unknown = sorted(set(self.cfg.measurement.min_view_labels) - self.labels)
-        if unknown:
-            raise InputError(f"skeleton config: field 'measurement.min_view_labels' names '{unknown[0]}', which "
-                             f"is not a blob label of the body model ({sorted(self.labels)})")
+        for field_name, names in (("tracking.reach_gate_labels", t.reach_gate_labels),
+                                  ("measurement.min_view_labels", self.cfg.measurement.min_view_labels)):
+            unknown = sorted(set(names) - self.labels)
+            if unknown:
+                raise InputError(f"skeleton config: field '{field_name}' names '{unknown[0]}', which "
+                                 f"is not a blob label of the body model ({sorted(self.labels)})")
         #: gated part -> (top link, reach m) as ``_reacquire_chain``: the re-acquired parts' chains, then
         #: ``tracking.reach_gate_labels``' through their blob-carrying parent
         self._gate_chain = dict(self._reacquire_chain)
