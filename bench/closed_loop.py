@@ -191,10 +191,11 @@ def claim(name: str, body, stamps: list[int], est: np.ndarray, truth: np.ndarray
                 "frames_over_150mm_settled": int(np.sum(after > HAND_LIMIT_M))}
     if name == "distractor":
         jumps = near = 0
+        parts = [head, wl, wr]
         for k, t in enumerate(motion_time(name, stamps)):
             other = body.joint_positions(pose_at("distractor", float(t), body))
-            to_other = np.linalg.norm(est[k, [head, wl, wr]] - other[[head, wl, wr]], axis=1)
-            nearer = to_other < np.linalg.norm(est[k, [head, wl, wr]] - truth[k, [head, wl, wr]], axis=1)
+            to_other = np.linalg.norm(est[k, parts] - other[parts], axis=1)
+            nearer = to_other < np.linalg.norm(est[k, parts] - truth[k, parts], axis=1)
             jumps += int(nearer.any())
             near += int((nearer & (to_other < JUMP_NEAR_M)).any())
         return {"jump_frames": jumps, "jump_frames_near_other": near}

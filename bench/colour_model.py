@@ -110,11 +110,13 @@ def run(args) -> int:
         raise InputError("give --hsv, --max-intensity or both: no pixel selection")
     if not 0 <= args.first <= args.last:
         raise InputError(f"--first {args.first} / --last {args.last}: need 0 <= first <= last")
+    # the reference mask needs the whole clip; without it, only the frames measured are decoded
+    max_frames = None if args.in_foreground else args.last + 1
     if args.bag is not None:
-        _, frames, _, _, _ = load_bag(args.bag, None)
+        _, frames, _, _, _ = load_bag(args.bag, max_frames)
         source = str(args.bag)
     else:
-        _, frames, _, _, _ = load_clip(args.demo, args.scale, None)
+        _, frames, _, _, _ = load_clip(args.demo, args.scale, max_frames)
         source = f"{args.demo} at --scale {args.scale}"
     if args.last >= len(frames):
         raise InputError(f"--last {args.last}: the clip has {len(frames)} frames")
