@@ -116,7 +116,11 @@ often a skin-coloured ghost);
 the heading is taken from the face's horizontal offset from the body axis and
 from the line between the hands (whose two perpendicular choices are tried), and
 the rest pose rotated about z is fitted for each candidate, held near that heading
-(``startup.heading_sigma_rad``), keeping the most consistent. For
+(``startup.heading_sigma_rad``), keeping the most consistent. When one camera
+alone sees the person (:func:`one_view_start_points`, ``startup.one_view_depth_sigma_m``) no ray
+meets another: the body is placed where the foreground centroid's ray comes down to the rest
+pose's centroid height (standing on z = 0), the face and hands on their rays at that depth, held
+to the rays only, and the heading comes from the hand line alone. For
 ``tracking.verify_frames`` frames after any initialisation the
 mirrored hypothesis (heading + π, left <-> right) is fitted too and taken over if
 it explains the labelled blobs much better (knees and elbows bend one way only).
@@ -140,6 +144,15 @@ passing the innovation gate); while lost, ``predict`` carries no blobs (so the
 2-D trackers fall back to their start-up classes) and the tracker re-initialises
 as at start-up (unless ``tracking.relocalise_from_blobs`` is false: then only
 ``reseed`` — another estimator's body, e.g. the loose-limbed one — restarts it).
+
+One camera (``one_camera`` in config/skeleton.yaml, applied by :meth:`SkeletonConfig.for_cameras`
+to an estimator given a single camera): every blob is then seen by one view, and its depth along
+the ray is the prediction's (the prior it was triangulated with), which fed back on itself and ran
+away (meters within seconds). The body fits count such blobs across their ray only
+(``measurement.one_view_depth_sigma_m`` along it), the kinematic filters take their depth from
+the frame's body fit (the ray's point nearest that fit's blob), and the fits get what one view
+lacks: the floor contact (``fit.ground_sigma_m``) and an upright trunk (``fit.upright_sigma_m``,
+:class:`UprightTrunk`): on descending rays, a body standing on the floor has one depth.
 
 Units: metres, radians, seconds (stamps in integer ns); world frame z up.
 """
@@ -242,6 +255,10 @@ class MeasurementConfig:
     min_view_fraction: float = 1.953125e-4
     #: the blob labels ``min_view_fraction`` applies to
     min_view_labels: list = field(default_factory=lambda: ["head", "l_hand", "r_hand"])
+    #: a 3-D blob seen by one view only takes its depth along that view's ray from the prior it was
+    #: triangulated with (the prediction); the body fits count it across the ray only, and this sigma
+    #: (m) along it (:meth:`_Estimator._blob_targets`); 0 = as triangulated (the prediction's depth)
+    one_view_depth_sigma_m: float = 0.0
 
 
 @dataclass
@@ -322,6 +339,8 @@ class FitConfig:
     edge_sigma_px: float = 1.0
     edge_min_found: int = 8
     ground_sigma_m: float = 0.0
+    #: soft upright trunk (:class:`UprightTrunk`): sigma of the thorax' horizontal offset from the pelvis, m; 0 = off
+    upright_sigma_m: float = 0.0
     floor_z_m: float = 0.0
     axis_label: str = "torso"
     axis_sigma_rad: float = 0.35
@@ -413,6 +432,10 @@ class StartupConfig:
     #: several, start-up starts on the fullest group (up to three points) whose highest point (the
     #: face) is nearest ``start_xy`` (:func:`nearest_person`); 0 = off
     person_gap_m: float = 1.0
+    #: one view sees the person (one camera): start-up points placed at the depth where the foreground
+    #: centroid's ray comes down to the rest pose's centroid height, held to their rays, and to this
+    #: sigma (m) along them (:func:`one_view_start_points`); 0 = no start-up from one view
+    one_view_depth_sigma_m: float = 0.3
 
 
 @dataclass
@@ -426,6 +449,22 @@ class SkeletonConfig:
     kinematic: KinematicConfig = field(default_factory=KinematicConfig)
     dynamic: DynamicConfig = field(default_factory=DynamicConfig)
     startup: StartupConfig = field(default_factory=StartupConfig)
+    #: {section: {field: value}} that replace the values above when the estimator has a single camera
+    #: (one view constrains only the ray: floor contact, upright trunk, ray-shaped measurements)
+    one_camera: dict = field(default_factory=lambda: {
+        "measurement": {"one_view_depth_sigma_m": 0.1},
+        "fit": {"ground_sigma_m": 0.005, "upright_sigma_m": 0.15},
+    })
+
+    def for_cameras(self, n_cameras: int) -> SkeletonConfig:
+        """This configuration for an estimator with ``n_cameras`` cameras (``one_camera`` applied for 1)."""
+        if n_cameras != 1 or not self.one_camera:
+            return self
+        merged = dataclasses.asdict(self)
+        merged.pop("one_camera")
+        for section, values in self.one_camera.items():
+            merged[section].update(values)
+        return load_skeleton_config(merged)
 
 
 def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = None) -> SkeletonConfig:
@@ -446,6 +485,12 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
             continue
         if not isinstance(values, Mapping):
             raise InputError(f"skeleton config: section '{name}' must be a mapping")
+        if name == "one_camera":
+            if "one_camera" in values:
+                raise InputError("skeleton config: section 'one_camera' cannot hold 'one_camera'")
+            load_skeleton_config(values)  # the same checks, on the overrides alone
+            out.one_camera = {k: dict(v) for k, v in values.items() if v}
+            continue
         current = getattr(out, name)
         known = {f.name: f for f in dataclasses.fields(current)}
         for key, value in values.items():
@@ -470,10 +515,13 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
     if len(xy) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in xy):
         raise InputError("skeleton config: field 'startup.start_xy' must be two finite numbers (x, y), m")
     non_negative = (("fit.ground_sigma_m", out.fit.ground_sigma_m),
+                    ("fit.upright_sigma_m", out.fit.upright_sigma_m),
                     ("fit.mirror_screen_ratio", out.fit.mirror_screen_ratio),
                     ("fit.mirror_prescreen_ratio", out.fit.mirror_prescreen_ratio),
                     ("startup.start_radius_m", out.startup.start_radius_m),
                     ("startup.person_gap_m", out.startup.person_gap_m),
+                    ("startup.one_view_depth_sigma_m", out.startup.one_view_depth_sigma_m),
+                    ("measurement.one_view_depth_sigma_m", out.measurement.one_view_depth_sigma_m),
                     ("tracking.reach_gate_margin", out.tracking.reach_gate_margin))
     for name, value in non_negative:
         if value < 0:
@@ -744,6 +792,52 @@ class GroundContact:
         z = self.heights(world_from_link)
         dz = body.point_jacobian(theta, self.links, self.local, world_from_link, twists)[:, 2, :]
         return np.vstack([dz[int(np.argmin(z))][None], np.where((z < 0.0)[:, None], dz, 0.0)]) / self.sigma
+
+
+@dataclass
+class UprightTrunk:
+    """Soft upright trunk for :func:`fit_pose` (with one view, a trunk leaning towards or away from
+    the camera looks the same; a standing or walking person keeps it near vertical): residuals
+    ``(x_top − x_bottom)_xy / sigma``, the horizontal offset (m) of the output joint ``top`` (e.g. the
+    thorax) from ``bottom`` (the pelvis), world z up; sigma m. Same interface as :class:`GroundContact`."""
+
+    links: np.ndarray  # (2,) link of bottom, top
+    local: np.ndarray  # (2, 3) their points in the link frames
+    sigma: float
+
+    @classmethod
+    def from_body(cls, body: BodyModel, sigma: float, bottom: str = "pelvis", top: str = "thorax") -> UprightTrunk:
+        names = list(body.joint_names)
+        for n in (bottom, top):
+            if n not in names:
+                raise InputError(f"skeleton: the upright trunk needs joint '{n}', which the body model has not")
+        k = [names.index(bottom), names.index(top)]
+        return cls(np.asarray(body.joint_links)[k], np.asarray(body.joint_points, float)[k], float(sigma))
+
+    def residuals(self, world_from_link: np.ndarray) -> np.ndarray:
+        """(..., 2) whitened residuals for poses (..., L, 4, 4)."""
+        x = BodyModel.transform_points(world_from_link, self.links, self.local)
+        return (x[..., 1, :2] - x[..., 0, :2]) / self.sigma
+
+    def jacobian(self, body: BodyModel, theta: np.ndarray, world_from_link: np.ndarray,
+                 twists: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(2, n_dof) Jacobian of :meth:`residuals` at theta."""
+        J = body.point_jacobian(theta, self.links, self.local, world_from_link, twists)
+        return (J[1, :2, :] - J[0, :2, :]) / self.sigma
+
+
+class BodyTerms:
+    """Several :class:`GroundContact`-like soft terms given to :func:`fit_pose` as one (its ``ground``)."""
+
+    def __init__(self, terms: Sequence[Any]):
+        self.terms = list(terms)
+
+    def residuals(self, world_from_link: np.ndarray) -> np.ndarray:
+        return np.concatenate([t.residuals(world_from_link) for t in self.terms], axis=-1)
+
+    def jacobian(self, body: BodyModel, theta: np.ndarray, world_from_link: np.ndarray,
+                 twists: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        return np.vstack([t.jacobian(body, theta, world_from_link, twists) for t in self.terms])
 
 
 def _whitener(info: np.ndarray) -> np.ndarray:
@@ -1122,6 +1216,58 @@ def match_skin_blobs(
     return out
 
 
+def one_view_start_points(
+    camera: Camera,
+    foreground: Blob2D,
+    skin: Sequence[Blob2D],
+    centre_height_m: float,
+    max_points: int = 3,
+) -> tuple[np.ndarray, list[tuple[np.ndarray, float, tuple[str, ...], np.ndarray]]] | None:
+    """Start-up points from a single view, where no ray meets another (ALGORITHMS.md §1, automatic
+    start-up; one camera "still constrains the ray"): depth from the floor instead of a second view.
+
+    The person stands on the floor (z = 0, REP 103 z up), so the body's centroid lies at about
+    ``centre_height_m`` (the rest pose's): the foreground blob's viewing ray is cut at that height.
+    The skin blobs (largest first, at most ``max_points``) are placed on their rays at the centre's
+    depth, in the vertical plane through the centre that faces the camera (a hand reaching towards
+    or away from the camera is off that plane; the fit's ray-shaped targets leave it free there).
+
+    Returns (centre (3,) world m, [(X (3,), pixel count, (camera name,), ray direction (3,))],
+    largest first), or None when the centroid's ray does not come down to that height in front of
+    the camera (a camera at the centroid's height or below it, or one looking up: no floor cue).
+    """
+    origin, dirs = camera.rays(np.asarray(foreground.mean, float).reshape(1, 2))
+    d = dirs[0]
+    if abs(d[2]) < 1e-3:
+        return None
+    t = (centre_height_m - origin[2]) / d[2]
+    if t <= 0.3:
+        return None
+    centre = origin + t * d
+    n = centre - origin
+    n[2] = 0.0
+    n /= np.linalg.norm(n)
+    blobs = sorted(skin, key=lambda b: -b.pixel_count)[:max_points]
+    points: list[tuple[np.ndarray, float, tuple[str, ...], np.ndarray]] = []
+    if blobs:
+        _, sd = camera.rays(np.array([np.asarray(b.mean, float) for b in blobs]).reshape(-1, 2))
+        for b, ds in zip(blobs, sd, strict=True):
+            denom = float(ds @ n)
+            if denom <= 1e-3:
+                continue
+            s = float((centre - origin) @ n) / denom
+            points.append((origin + s * ds, float(b.pixel_count), (camera.name,), ds))
+    return centre, points
+
+
+def ray_information(direction: np.ndarray, sigma_across_m: float, sigma_along_m: float) -> np.ndarray:
+    """(3, 3) information of a point known to sigma_across_m off a viewing ray of unit
+    ``direction`` and to sigma_along_m along it (one view's point; depth from a weaker cue)."""
+    d = np.asarray(direction, float).reshape(3)
+    along = np.outer(d, d)
+    return (np.eye(3) - along) / sigma_across_m**2 + along / sigma_along_m**2
+
+
 # =========================================================================== estimators
 class _Estimator:
     """Shared machinery: triangulation, status, initialisation, output."""
@@ -1132,13 +1278,17 @@ class _Estimator:
         self.body = body
         cams = list(cameras.values()) if isinstance(cameras, Mapping) else list(cameras)
         self.cameras = {c.name: c for c in cams}
-        self.cfg = load_skeleton_config(config)
+        self.cfg = load_skeleton_config(config).for_cameras(len(self.cameras))
         self.kin = BodyKinematics(body)
         self.labels = set(self.kin.blob_labels)
         self._centroid_local = self.kin.body_centroid_local()
         f = self.cfg.fit
         #: soft floor contact of the body fits (baseline frames, initialisation), or None
-        self._ground = GroundContact.from_body(body, f.ground_sigma_m, f.floor_z_m) if f.ground_sigma_m > 0 else None
+        terms = [GroundContact.from_body(body, f.ground_sigma_m, f.floor_z_m)] if f.ground_sigma_m > 0 else []
+        if f.upright_sigma_m > 0:
+            terms.append(UprightTrunk.from_body(body, f.upright_sigma_m))
+        #: soft floor contact and upright trunk of the body fits, or None
+        self._ground = None if not terms else terms[0] if len(terms) == 1 else BodyTerms(terms)
         self._reach = self._arm_reach()
         sided = {lab[2:] for lab in body.blob_labels if lab[:2] == "l_" and "r_" + lab[2:] in body.blob_labels}
         for name, parts in (("fit.mirror_groups", {p for g in f.mirror_groups for p in g}),
@@ -1616,11 +1766,33 @@ class _Estimator:
     def _has_startup_blobs(blobs_by_camera) -> bool:
         return any(b.label == SKIN for bl in blobs_by_camera.values() for b in bl)
 
+    def _one_view_ray(self, blob: Blob3D) -> tuple[np.ndarray, np.ndarray] | None:
+        """(camera centre, unit direction to the blob) when ``blob`` was seen by one view only and
+        ``measurement.one_view_depth_sigma_m`` > 0 (its depth is then the prior's), else None."""
+        if self.cfg.measurement.one_view_depth_sigma_m <= 0 or len(blob.cameras) != 1:
+            return None
+        cam = self.cameras.get(blob.cameras[0])
+        if cam is None:
+            return None
+        d = np.asarray(blob.mean, float) - cam.center
+        n = float(np.linalg.norm(d))
+        return (cam.center, d / n) if n > 0 else None
+
     def _blob_targets(self, obs: Mapping[str, Blob3D]) -> list[PointTarget]:
         out = []
+        depth_sigma = self.cfg.measurement.one_view_depth_sigma_m
         for lab, blob in obs.items():
             k = self.kin.blob_index[lab]
-            info = np.linalg.inv(self.measurement_cov(blob))
+            cov = self.measurement_cov(blob)
+            ray = self._one_view_ray(blob)
+            if ray is not None:
+                # One view: the depth along its ray is the prior's; keep the across-ray marginal only.
+                d = ray[1]
+                across = np.eye(3) - np.outer(d, d)
+                info = (np.linalg.pinv(across @ cov @ across, rcond=1e-9, hermitian=True)
+                        + np.outer(d, d) / depth_sigma**2)
+            else:
+                info = np.linalg.inv(cov)
             out.append(PointTarget(int(self.kin.blob_links[k]), self.kin.blob_local[k], blob.mean, info))
         return out
 
@@ -1683,6 +1855,25 @@ class _Estimator:
             skin, self.cameras, 6, s.match_gate_sigma, s.match_gate_px, s.missing_view_penalty_px
         )
         centre = None if centre_blob is None else centre_blob.mean
+        # One view (one camera sees the person): no ray meets another, depth comes from the floor.
+        rays: dict[int, np.ndarray] = {}  # id(point) -> its one view's ray direction
+        fg_views = [c for c, bl in fg.items() if bl]
+        one_view = (s.one_view_depth_sigma_m > 0 and centre is None and len(fg_views) == 1
+                    and sum(1 for sk in skin.values() if sk) <= 1)
+        if one_view:
+            cam = self.cameras[fg_views[0]]
+            fg_blob = max(fg[cam.name], key=lambda b: b.pixel_count)
+            rest_p, rest_R = self.kin.poses(self.kin.rest)
+            start = one_view_start_points(
+                cam, fg_blob, skin.get(cam.name, []),
+                float((rest_p[0] + rest_R[0] @ self._centroid_local)[2]), s.max_skin_blobs_per_camera,
+            )
+            if start is None:
+                return None
+            centre, one = start
+            points = [(X, n, cams, None) for X, n, cams, _ in one]
+            rays = {id(p[0]): d for p, (_, _, _, d) in zip(points, one, strict=True)}
+            _, centre_ray = cam.rays(np.asarray(fg_blob.mean, float).reshape(1, 2))
         if s.start_radius_m > 0:
             # Several people in view: start on the one standing within start_radius_m of start_xy
             # (skin points elsewhere belong to others; a foreground centre elsewhere mixes people).
@@ -1710,7 +1901,7 @@ class _Estimator:
             and len(p[2]) >= need
         ][:2]
         yaw_face = None
-        if centre is not None:
+        if centre is not None and not one_view:  # (one view: the face's offset in depth is unseen)
             off = (face - centre)[:2]
             if np.linalg.norm(off) > s.min_facing_offset_m:
                 yaw_face = math.atan2(off[1], off[0])
@@ -1735,6 +1926,8 @@ class _Estimator:
             if head_k is not None:
                 hl = int(self.kin.blob_links[head_k])
                 info_face = np.diag([1 / s.skin_sigma_m**2, 1 / s.skin_sigma_m**2, 1 / s.face_sigma_z_m**2])
+                if one_view:
+                    info_face = ray_information(rays[id(face)], s.skin_sigma_m, s.one_view_depth_sigma_m)
                 targets.append(PointTarget(hl, self.kin.blob_local[head_k], head_target, info_face))
                 head_rest = self.kin.blob_points(rest_p, rest_R)[head_k]
                 root = head_target - Rz @ (head_rest - rest_p[0])
@@ -1747,13 +1940,15 @@ class _Estimator:
                     name = "l_hand" if float((x - axis) @ left) > 0 else "r_hand"
                 k = self.kin.blob_index.get(name)
                 if k is not None:
-                    targets.append(
-                        PointTarget(int(self.kin.blob_links[k]), self.kin.blob_local[k], x, info_skin)
-                    )
+                    info = (ray_information(rays[id(x)], s.skin_sigma_m, s.one_view_depth_sigma_m) if one_view
+                            else info_skin)
+                    targets.append(PointTarget(int(self.kin.blob_links[k]), self.kin.blob_local[k], x, info))
             if centre is not None:
                 info_c = np.diag(
                     [1 / s.centroid_sigma_xy_m**2, 1 / s.centroid_sigma_xy_m**2, 1 / s.centroid_sigma_z_m**2]
                 )
+                if one_view:
+                    info_c = ray_information(centre_ray[0], s.centroid_sigma_xy_m, s.one_view_depth_sigma_m)
                 targets.append(PointTarget(0, self._centroid_local, centre, info_c))
             if s.standing_height_sigma_m > 0:  # standing on the floor (z = 0): pelvis near its rest height
                 info_h = np.diag([0.0, 0.0, 1.0 / s.standing_height_sigma_m**2])
@@ -2311,9 +2506,22 @@ class KinematicEstimator(_Estimator):
         t0 = time.perf_counter()
         theta_fit, fit_d2 = self._outlier_fit(obs, k.outlier_fit_scale)
         t1 = time.perf_counter()
+        fit_centres = None if theta_fit is None else self.body.blob_centres(theta_fit)
         for lab, blob in obs.items():
             b = self.kin.blob_index[lab]
             z[b], Rm[b] = blob.mean, self.measurement_cov(blob)
+            ray = self._one_view_ray(blob)
+            if ray is not None and fit_centres is not None:
+                # One view: its depth along the ray is the filters' own prediction (the prior it was
+                # triangulated with), which would feed back on itself and run away; the depth comes
+                # from the frame's body fit instead (floor contact, upright trunk), the point of the
+                # ray nearest that fit's blob, to measurement.one_view_depth_sigma_m along the ray.
+                origin, d = ray
+                z[b] = origin + float((fit_centres[b] - origin) @ d) * d
+                across = np.eye(3) - np.outer(d, d)
+                Rm[b] = across @ Rm[b] @ across + np.outer(d, d) * self.cfg.measurement.one_view_depth_sigma_m**2
+                r = z[b] - fit_centres[b]
+                fit_d2[lab] = float(r @ np.linalg.solve(Rm[b], r))
             S = self.blob_kf.P_prior[b, :3, :3] + Rm[b]
             nu = z[b] - self.blob_kf.x_prior[b, :3]
             d2 = float(nu @ np.linalg.solve(S, nu))
