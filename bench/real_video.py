@@ -23,6 +23,8 @@ blob tracker and the default 'baseline' body fit, tunables from ``--blob-config`
   (joint-frames without an estimate count as outside).
 * ``LOO IoU``: leave-one-camera-out, the IoU in a camera of the body tracked with the three
   others (``--no-loo`` skips these four extra runs).
+* ``--track-cameras``: track with some cameras only (one, say); every view is still checked, so the
+  others are held out, as in leave-one-camera-out.
 * joint speeds between frames; any above 10 m/s is flagged.
 * ``head to cap``: the man wears a cyan cap; found by colour in every view and triangulated
   (``artrack.silhouette.colour_marker``) it is an independent 3-D point on him. The distance of
@@ -233,6 +235,10 @@ def main() -> int:
                     help="body model YAML (default: the Pose2Sim recordings' config/pose2sim_body_model.yaml)")
     ap.add_argument("--pred", type=Path, default=None, help="check this tracking output instead (bag or track folder)")
     ap.add_argument("--no-loo", action="store_true", help="skip the leave-one-camera-out runs")
+    ap.add_argument("--track-cameras", nargs="+", default=None, metavar="NAME",
+                    help="track with these cameras only (e.g. one: cam03; config/skeleton.yaml's one_camera "
+                         "settings then apply); the checks still cover every view, the others held out; no "
+                         "leave-one-camera-out runs")
     ap.add_argument("--dilate-px", type=int, default=6, help="dilation of the reference mask for 'inside', px")
     ap.add_argument("--tolerance-px", type=int, default=3,
                     help="tolerance of the 'on' / 'covered' shares and of the shifted reference's IoU, px")
@@ -264,7 +270,14 @@ def run(args) -> int:
     refs = reference_foreground(frames)
     ref_ms = (time.perf_counter() - t0) * 1e3 / len(frames)
 
-    estimates, blobs, stages, elapsed = track(body, cameras, frames, stamps, config, "track", args.quiet)
+    tracking = cameras
+    if args.track_cameras:
+        unknown = sorted(set(args.track_cameras) - set(names))
+        if unknown:
+            raise InputError(f"--track-cameras: no camera '{unknown[0]}' in {args.bag or args.demo} "
+                             f"(cameras: {', '.join(names)})")
+        tracking = [c for c in cameras if c.name in args.track_cameras]
+    estimates, blobs, stages, elapsed = track(body, tracking, frames, stamps, config, "track", args.quiet)
     fps = len(frames) / elapsed
     offline_joints = joints_array(estimates, len(body.joint_names))
     graph_diff = None
@@ -292,7 +305,7 @@ def run(args) -> int:
     inside_share = float(np.mean([inside[n].mean() for n in names]))
 
     loo: dict[str, float | None] = {n: None for n in names}
-    if not args.no_loo and len(cameras) > 1:
+    if not args.no_loo and not args.track_cameras and len(cameras) > 1:
         for c in cameras:
             rest = [k for k in cameras if k.name != c.name]
             est_c, _, _, _ = track(body, rest, frames, stamps, config, f"loo-{c.name}", args.quiet)
@@ -322,7 +335,8 @@ def run(args) -> int:
     w, h = cameras[0].width, cameras[0].height
     src = f"{args.pred} (checked), offline run for fps" if args.pred else "offline closed loop"
     print(f"{(args.bag or args.demo).name}: {len(frames)} frames x {len(cameras)} views at {w}x{h}, "
-          f"{fps_clip:g} fps; {src}")
+          f"{fps_clip:g} fps; {src}"
+          + (f"; tracked with {', '.join(c.name for c in tracking)} only" if args.track_cameras else ""))
     print(f"tracked frames: {int(tracked.sum())}/{len(frames)} (first at frame "
           f"{int(np.argmax(tracked)) if tracked.any() else '-'})")
     tol = f"±{args.tolerance_px}"
@@ -356,11 +370,11 @@ def run(args) -> int:
     if graph_diff is not None:
         print(f"largest joint difference, checked output vs offline run: {graph_diff * 1e3:.3g} mm")
     stage_ms = {"decode+scale": decode_ms, **{k: float(np.mean(v)) for k, v in stages.items()}}
-    print(f"{'stage':<16}{'ms/frame (4 views)':>20}")
+    print(f"{'stage':<16}{f'ms/frame ({len(tracking)} views)':>20}")
     for k, v in stage_ms.items():
         print(f"{k:<16}{v:20.2f}")
     print(f"{'(checks) ref. mask':<16}{ref_ms:20.2f}\n{'(checks) model':<16}{sil_ms:20.2f}")
-    print(f"tracking loop: {fps:.1f} frames per second (4 views; decoding and checks excluded)")
+    print(f"tracking loop: {fps:.1f} frames per second ({len(tracking)} views; decoding and checks excluded)")
 
     if args.overlay_png or args.overlay_mp4:
         picks = sorted({0, len(frames) // 3, 2 * len(frames) // 3, len(frames) - 1})
@@ -397,6 +411,7 @@ def run(args) -> int:
         "head_to_marker_max_m": round(float(hd.max()), 3) if hd.size else None,
         "frames_head_off_marker": off if hd.size else None,
         "checked": str(args.pred) if args.pred else "offline",
+        "tracked_with": [c.name for c in tracking],
         "max_diff_to_offline_m": graph_diff,
     }))
     return 0
