@@ -18,7 +18,7 @@ live graph) on the synthetic scenes of ``bench/closed_loop.py`` (cached bags, 4 
    (from 2 s after the track starts: without the start-up's wrong hands);
 3. self-occlusion: worst hand error with feedback on and off (claim: <= 150 mm with);
 4. distractor: frames where head or a hand is nearer the other person (claim: 0);
-5. camera count: 4, 2 and 1 cameras (one camera: config/skeleton.yaml's `one_camera` settings);
+5. camera count: 4, 2 and 1 cameras (one and two: config/skeleton.yaml's `few_cameras` settings);
 6. throughput: frames per second at 320x240 and 640x480 and milliseconds per stage
    (background, MAP classification and blob statistics summed over the 4 cameras;
    triangulation, outlier fit, Kalman filters, constraint solver, the rest of the pose

@@ -236,8 +236,8 @@ def main() -> int:
     ap.add_argument("--pred", type=Path, default=None, help="check this tracking output instead (bag or track folder)")
     ap.add_argument("--no-loo", action="store_true", help="skip the leave-one-camera-out runs")
     ap.add_argument("--track-cameras", nargs="+", default=None, metavar="NAME",
-                    help="track with these cameras only (e.g. one: cam03; config/skeleton.yaml's one_camera "
-                         "settings then apply); the checks still cover every view, the others held out; no "
+                    help="track with these cameras only (e.g. one: cam03; config/skeleton.yaml's few_cameras "
+                         "settings apply to one or two); the checks still cover every view, the others held out; no "
                          "leave-one-camera-out runs")
     ap.add_argument("--dilate-px", type=int, default=6, help="dilation of the reference mask for 'inside', px")
     ap.add_argument("--tolerance-px", type=int, default=3,

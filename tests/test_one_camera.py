@@ -1,6 +1,6 @@
 """One camera (ALGORITHMS.md §1: "a part seen by one camera only still constrains the ray"): the
 start-up from a single view (depth from the floor), the ray-shaped measurements, the upright trunk
-and the ``one_camera`` section of config/skeleton.yaml that switches them on."""
+and the ``few_cameras`` section of config/skeleton.yaml that switches them on for one or two."""
 
 from __future__ import annotations
 
@@ -92,7 +92,7 @@ def test_ray_information_is_tight_across_and_loose_along():
 
 def test_one_camera_starts_and_tracks_where_four_cameras_settings_never_start(body, camera):
     """With the file's settings a single camera starts from the start-up blobs (before stop 46 it never
-    did) and then tracks labelled blobs from that view alone; with ``one_camera`` emptied (and the
+    did) and then tracks labelled blobs from that view alone; with ``few_cameras`` off (and the
     one-view start-up off) the same frames never start."""
     theta = _pose(body)
     est = make_estimator("baseline", body, [camera], _config())
@@ -109,7 +109,7 @@ def test_one_camera_starts_and_tracks_where_four_cameras_settings_never_start(bo
     assert err[0] < 0.2 and err.mean() < 0.2, err
     # No one-camera settings: never starts.
     cfg = _config()
-    cfg["one_camera"] = {}
+    cfg["few_cameras"]["max_cameras"] = 0
     cfg["startup"]["one_view_depth_sigma_m"] = 0.0
     off = make_estimator("baseline", body, [camera], cfg)
     assert off.update(stamp(0), startup_blobs(body, [camera], theta)).status == STATUS_INITIALIZING
@@ -119,7 +119,7 @@ def test_one_view_blobs_count_across_their_ray_only(body, camera):
     """measurement.one_view_depth_sigma_m: a 3-D blob from one view, triangulated with a tight prior
     (its depth is the prediction's), is a fit target of that sigma along the ray and keeps its
     across-ray information; a blob from two views is unchanged."""
-    est = make_estimator("baseline", body, [camera], {"one_camera": {"measurement": {"one_view_depth_sigma_m": 0.5}}})
+    est = make_estimator("baseline", body, [camera], {"few_cameras": {"measurement": {"one_view_depth_sigma_m": 0.5}}})
     mean = np.array([0.3, -0.2, 1.2])
     cov = np.eye(3) * 0.01**2
     one = est._blob_targets({"head": Blob3D("head", mean, cov, ("cam0",))})[0]
@@ -167,18 +167,28 @@ def test_upright_trunk_holds_the_thorax_over_the_pelvis(body):
         UprightTrunk.from_body(body, 0.1, top="chin")
 
 
-def test_one_camera_section_applies_to_one_camera_only():
+def test_few_cameras_section_applies_to_one_or_two_cameras_only():
     cfg = load_skeleton_config(_config())
-    assert cfg.for_cameras(4) is cfg
+    assert cfg.few_cameras_max == 2
+    assert cfg.for_cameras(4) is cfg and cfg.for_cameras(3) is cfg
     one = cfg.for_cameras(1)
     assert one.fit.ground_sigma_m == 0.005 and one.fit.upright_sigma_m == 0.15
     assert one.measurement.one_view_depth_sigma_m == 0.1
-    assert cfg.fit.ground_sigma_m == 0.0  # the four-camera values are untouched
+    assert cfg.for_cameras(2) == one
+    assert cfg.fit.ground_sigma_m == 0.0  # the values for more cameras are untouched
     assert SkeletonConfig().for_cameras(1) == one
+    assert load_skeleton_config({"few_cameras": {"max_cameras": 3}}).for_cameras(3).fit.upright_sigma_m == 0.15
+    assert load_skeleton_config({"few_cameras": {"max_cameras": 0}}).for_cameras(1).fit.upright_sigma_m == 0.0
+    merged = load_skeleton_config({"few_cameras": {"fit": {"upright_sigma_m": 0.3}}}).for_cameras(1)
+    assert merged.fit.upright_sigma_m == 0.3 and merged.fit.ground_sigma_m == 0.005  # merged into the defaults
     with pytest.raises(InputError, match="fit.bogus"):
-        load_skeleton_config({"one_camera": {"fit": {"bogus": 1}}})
+        load_skeleton_config({"few_cameras": {"fit": {"bogus": 1}}})
     with pytest.raises(InputError, match="upright_sigma_m"):
-        load_skeleton_config({"one_camera": {"fit": {"upright_sigma_m": -1.0}}})
+        load_skeleton_config({"few_cameras": {"fit": {"upright_sigma_m": -1.0}}})
+    with pytest.raises(InputError, match="few_cameras.max_cameras"):
+        load_skeleton_config({"few_cameras": {"max_cameras": "two"}})
+    with pytest.raises(InputError, match="unknown section 'few_cameras_max'"):
+        load_skeleton_config({"few_cameras_max": 3})
 
 
 @pytest.mark.parametrize("kind", ["baseline", "kinematic"])
@@ -196,7 +206,7 @@ def test_one_camera_follows_a_walk_along_its_rays(body, camera, kind):
     errors = {}
     for depth_sigma in (0.1, 0.0):
         cfg = _config()
-        cfg["one_camera"]["measurement"]["one_view_depth_sigma_m"] = depth_sigma
+        cfg["few_cameras"]["measurement"]["one_view_depth_sigma_m"] = depth_sigma
         est = make_estimator(kind, body, [camera], cfg)
         est.update(stamp(0), startup_blobs(body, [camera], pose(0)))
         rng = np.random.default_rng(7)

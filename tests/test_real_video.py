@@ -180,7 +180,7 @@ def test_tracking_starts_automatically_on_the_person():
 @needs_demo
 @pytest.mark.parametrize("camera", ["cam01", "cam02", "cam03", "cam04"])
 def test_tracking_starts_from_one_camera(camera):
-    """One camera alone (config/skeleton.yaml's one_camera settings: depth from the floor and an
+    """One camera alone (config/skeleton.yaml's few_cameras settings: depth from the floor and an
     upright trunk) starts on the man within the first 20 frames too: the pelvis within 0.35 m
     horizontally of the cap that the four views triangulate (0.06-0.26 m at the first estimate)
     and 0.6-1.2 m above the treadmill. (Its head is 0.2-0.8 m from the cap then: depth along

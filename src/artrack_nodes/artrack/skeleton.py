@@ -145,10 +145,11 @@ passing the innovation gate); while lost, ``predict`` carries no blobs (so the
 as at start-up (unless ``tracking.relocalise_from_blobs`` is false: then only
 ``reseed`` — another estimator's body, e.g. the loose-limbed one — restarts it).
 
-One camera (``one_camera`` in config/skeleton.yaml, applied by :meth:`SkeletonConfig.for_cameras`
-to an estimator given a single camera): every blob is then seen by one view, and its depth along
-the ray is the prediction's (the prior it was triangulated with), which fed back on itself and ran
-away (meters within seconds). The body fits count such blobs across their ray only
+One or two cameras (``few_cameras`` in config/skeleton.yaml, applied by
+:meth:`SkeletonConfig.for_cameras` to an estimator given at most ``few_cameras.max_cameras``): every
+blob (one camera) or many (two) are then seen by one view, and such a blob's depth along the ray is
+the prediction's (the prior it was triangulated with), which fed back on itself and, with one
+camera, ran away (metres within seconds). The body fits count such blobs across their ray only
 (``measurement.one_view_depth_sigma_m`` along it), the kinematic filters take their depth from
 the frame's body fit (the ray's point nearest that fit's blob), and the fits get what one view
 lacks: the floor contact (``fit.ground_sigma_m``) and an upright trunk (``fit.upright_sigma_m``,
@@ -449,20 +450,26 @@ class SkeletonConfig:
     kinematic: KinematicConfig = field(default_factory=KinematicConfig)
     dynamic: DynamicConfig = field(default_factory=DynamicConfig)
     startup: StartupConfig = field(default_factory=StartupConfig)
-    #: {section: {field: value}} that replace the values above when the estimator has a single camera
-    #: (one view constrains only the ray: floor contact, upright trunk, ray-shaped measurements)
-    one_camera: dict = field(default_factory=lambda: {
+    #: {section: {field: value}} that replace the values above when the estimator has at most
+    #: ``few_cameras_max`` cameras (parts seen by one view constrain only their ray: ray-shaped
+    #: measurements, floor contact, upright trunk); config/skeleton.yaml ``few_cameras`` (a file's
+    #: fields are merged into these; ``max_cameras: 0`` turns them off)
+    few_cameras: dict = field(default_factory=lambda: {
         "measurement": {"one_view_depth_sigma_m": 0.1},
         "fit": {"ground_sigma_m": 0.005, "upright_sigma_m": 0.15},
     })
+    #: ``few_cameras.max_cameras`` in the file
+    few_cameras_max: int = 2
 
     def for_cameras(self, n_cameras: int) -> SkeletonConfig:
-        """This configuration for an estimator with ``n_cameras`` cameras (``one_camera`` applied for 1)."""
-        if n_cameras != 1 or not self.one_camera:
+        """This configuration for an estimator with ``n_cameras`` cameras (``few_cameras`` applied
+        for at most ``few_cameras_max``)."""
+        if n_cameras > self.few_cameras_max or not self.few_cameras:
             return self
         merged = dataclasses.asdict(self)
-        merged.pop("one_camera")
-        for section, values in self.one_camera.items():
+        merged.pop("few_cameras_max")
+        merged["few_cameras"] = {"max_cameras": self.few_cameras_max, **self.few_cameras}
+        for section, values in self.few_cameras.items():
             merged[section].update(values)
         return load_skeleton_config(merged)
 
@@ -477,7 +484,7 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
     if not isinstance(config, Mapping):
         raise InputError(f"skeleton config: expected a mapping of sections, got {type(config).__name__}")
     out = SkeletonConfig()
-    sections = {f.name: f for f in dataclasses.fields(SkeletonConfig)}
+    sections = {f.name: f for f in dataclasses.fields(SkeletonConfig) if f.name != "few_cameras_max"}
     for name, values in config.items():
         if name not in sections:
             raise InputError(f"skeleton config: unknown section '{name}' (known: {', '.join(sections)})")
@@ -485,11 +492,18 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
             continue
         if not isinstance(values, Mapping):
             raise InputError(f"skeleton config: section '{name}' must be a mapping")
-        if name == "one_camera":
-            if "one_camera" in values:
-                raise InputError("skeleton config: section 'one_camera' cannot hold 'one_camera'")
+        if name == "few_cameras":
+            values = dict(values)
+            max_cameras = values.pop("max_cameras", out.few_cameras_max)
+            if isinstance(max_cameras, bool) or not isinstance(max_cameras, int) or max_cameras < 0:
+                raise InputError(f"skeleton config: field 'few_cameras.max_cameras' must be an integer >= 0 "
+                                 f"(got {max_cameras!r})")
+            if "few_cameras" in values:
+                raise InputError("skeleton config: section 'few_cameras' cannot hold 'few_cameras'")
             load_skeleton_config(values)  # the same checks, on the overrides alone
-            out.one_camera = {k: dict(v) for k, v in values.items() if v}
+            for section, fields in values.items():  # (fields not given keep their default overrides)
+                out.few_cameras.setdefault(section, {}).update(fields or {})
+            out.few_cameras_max = max_cameras
             continue
         current = getattr(out, name)
         known = {f.name: f for f in dataclasses.fields(current)}
@@ -2506,7 +2520,8 @@ class KinematicEstimator(_Estimator):
         t0 = time.perf_counter()
         theta_fit, fit_d2 = self._outlier_fit(obs, k.outlier_fit_scale)
         t1 = time.perf_counter()
-        fit_centres = None if theta_fit is None else self.body.blob_centres(theta_fit)
+        fit_centres = (None if theta_fit is None or self.cfg.measurement.one_view_depth_sigma_m <= 0
+                       else self.body.blob_centres(theta_fit))  # (only for one-view depths)
         for lab, blob in obs.items():
             b = self.kin.blob_index[lab]
             z[b], Rm[b] = blob.mean, self.measurement_cov(blob)
