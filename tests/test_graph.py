@@ -141,3 +141,27 @@ def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small
         for topic, _, _ in reader.messages():
             counts[topic] = counts.get(topic, 0) + 1
     assert all(counts.get(f"/cameras/{c}/edge_statistics", 0) == FRAMES for c in ("cam01", "cam02", "cam03", "cam04"))
+
+
+@pytest.fixture(scope="module")
+def one_camera_scene(tmp_path_factory, env) -> Path:
+    """The small scene seen by one camera (cam01 of the ring)."""
+    out = tmp_path_factory.mktemp("scene1") / "small_c1.mcap"
+    run_artrack(env, "synth", "--seed", "3", "--cameras", "1", "--out", str(out), "--duration", "2.5",
+                "--width", "320", "--height", "240", "--quiet")
+    return out
+
+
+def test_graph_with_one_camera_equals_offline_track(one_camera_scene, env, tmp_path):
+    """A graph of one camera (one blob_features node): the skeleton node starts from that view alone
+    and tracks (config/skeleton.yaml few_cameras, applied because it knows one camera), with the same
+    joints as `artrack track` on the same bag."""
+    rec = _launch(tmp_path, one_camera_scene, env, "cameras=[cam01]")
+    run_artrack(env, "track", str(one_camera_scene), "--out", str(tmp_path / "offline"), "--quiet")
+    live = _bodies(rec)
+    offline = _bodies(tmp_path / "offline" / "track")
+    assert sorted(live) == sorted(offline) and len(offline) == FRAMES
+    tracked = [s for s in offline if not np.isnan(offline[s]).all()]
+    assert len(tracked) >= 15, "one camera should start after the background seed"
+    worst = max(float(np.nanmax(np.abs(live[s] - offline[s]))) for s in tracked)
+    assert worst <= 1e-9, f"live graph and offline pipeline differ by {worst:.3g} m with one camera"
