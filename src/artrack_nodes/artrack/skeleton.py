@@ -810,8 +810,9 @@ class GroundContact:
 
 @dataclass
 class UprightTrunk:
-    """Soft upright trunk for :func:`fit_pose` (with one view, a trunk leaning towards or away from
-    the camera looks the same; a standing or walking person keeps it near vertical): residuals
+    """Soft upright trunk for :func:`fit_pose`, one of the soft priors of ALGORITHMS.md §1 ("Soft
+    constraints": gravity, rest pose, joint limits); with one view, a trunk leaning towards or away
+    from the camera looks the same, and a standing or walking person keeps it near vertical: residuals
     ``(x_top − x_bottom)_xy / sigma``, the horizontal offset (m) of the output joint ``top`` (e.g. the
     thorax) from ``bottom`` (the pelvis), world z up; sigma m. Same interface as :class:`GroundContact`."""
 
