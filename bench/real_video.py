@@ -263,13 +263,6 @@ def run(args) -> int:
     else:
         cameras, frames, stamps, fps_clip, decode_ms = load_clip(args.demo, args.scale, args.max_frames or None)
     names = [c.name for c in cameras]
-    body = load_body_model(args.body_model)
-    config = load_pipeline_config(fps=fps_clip, blob_config=args.blob_config, skeleton_config=args.skeleton_config,
-                                  edges=args.edges, edge_config=args.edge_config)
-    t0 = time.perf_counter()
-    refs = reference_foreground(frames)
-    ref_ms = (time.perf_counter() - t0) * 1e3 / len(frames)
-
     tracking = cameras
     if args.track_cameras:
         unknown = sorted(set(args.track_cameras) - set(names))
@@ -277,6 +270,13 @@ def run(args) -> int:
             raise InputError(f"--track-cameras: no camera '{unknown[0]}' in {args.bag or args.demo} "
                              f"(cameras: {', '.join(names)})")
         tracking = [c for c in cameras if c.name in args.track_cameras]
+    body = load_body_model(args.body_model)
+    config = load_pipeline_config(fps=fps_clip, blob_config=args.blob_config, skeleton_config=args.skeleton_config,
+                                  edges=args.edges, edge_config=args.edge_config)
+    t0 = time.perf_counter()
+    refs = reference_foreground(frames)
+    ref_ms = (time.perf_counter() - t0) * 1e3 / len(frames)
+
     estimates, blobs, stages, elapsed = track(body, tracking, frames, stamps, config, "track", args.quiet)
     fps = len(frames) / elapsed
     offline_joints = joints_array(estimates, len(body.joint_names))

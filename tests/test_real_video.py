@@ -203,3 +203,15 @@ def test_tracking_starts_from_one_camera(camera):
     pelvis = est.joints[body.joint_names.index("pelvis")]
     assert np.linalg.norm(pelvis[:2] - cap[:2]) < 0.35
     assert 0.6 < pelvis[2] < 1.2
+
+
+@needs_demo
+def test_an_unknown_tracking_camera_is_one_line_and_exit_1():
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, str(REPO / "bench" / "real_video.py"), "--demo", str(DEMO), "--max-frames",
+                          "2", "--track-cameras", "cam09", "--quiet"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 1
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("real_video: --track-cameras: no camera 'cam09'"), out.stderr
