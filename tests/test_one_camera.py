@@ -90,7 +90,7 @@ def test_ray_information_is_tight_across_and_loose_along():
     assert np.isclose(across @ info @ across, 1.0 / 0.03**2)
 
 
-def test_one_camera_starts_and_tracks_where_four_cameras_settings_never_start(body, camera):
+def test_one_camera_starts_and_tracks_only_with_the_one_view_settings(body, camera):
     """With the file's settings a single camera starts from the start-up blobs (before stop 46 it never
     did) and then tracks labelled blobs from that view alone; with ``few_cameras`` off (and the
     one-view start-up off) the same frames never start."""
@@ -107,7 +107,7 @@ def test_one_camera_starts_and_tracks_where_four_cameras_settings_never_start(bo
     assert e.status == STATUS_TRACKING
     err = np.linalg.norm(e.joints - truth, axis=1)
     assert err[0] < 0.2 and err.mean() < 0.2, err
-    # No one-camera settings: never starts.
+    # Without the one-view settings: never starts.
     cfg = _config()
     cfg["few_cameras"]["max_cameras"] = 0
     cfg["startup"]["one_view_depth_sigma_m"] = 0.0
