@@ -70,11 +70,13 @@ def test_one_view_start_points_take_their_depth_from_the_floor(body, camera):
     centre, points = out
     assert np.linalg.norm(centre - centre_true) < 0.25, centre - centre_true
     assert len(points) == 3
-    for X, count, cams, direction in points:
+    for X, count, cams in points:
         assert cams == ("cam0",) and count == 300
         uv, _ = camera.project(X[None])
         assert min(np.linalg.norm(uv[0] - b.mean) for b in skin) < 1e-6
-        assert abs(np.linalg.norm(direction) - 1.0) < 1e-12
+        # (X - centre) is the blob's viewing ray, as the start-up's ray-shaped targets assume
+        rays = camera.rays(np.array([b.mean for b in skin]))[1]
+        assert min(np.linalg.norm((X - camera.center) / np.linalg.norm(X - camera.center) - r) for r in rays) < 1e-12
     # A camera at the centroid's height, looking level, has no floor cue: no start.
     level = Camera.look_at("cam1", 640, 480, camera.K, np.array([4.0, 0.5, 0.9]), np.array([0.0, 0.0, 0.9]))
     fg_level = Blob2D("foreground", np.array([319.5, 239.5]), np.eye(2) * 400.0, pixel_count=5000)

@@ -1237,7 +1237,7 @@ def one_view_start_points(
     skin: Sequence[Blob2D],
     centre_height_m: float,
     max_points: int = 3,
-) -> tuple[np.ndarray, list[tuple[np.ndarray, float, tuple[str, ...], np.ndarray]]] | None:
+) -> tuple[np.ndarray, list[tuple[np.ndarray, float, tuple[str, ...]]]] | None:
     """Start-up points from a single view, where no ray meets another (ALGORITHMS.md §1, automatic
     start-up; one camera "still constrains the ray"): depth from the floor instead of a second view.
 
@@ -1247,9 +1247,10 @@ def one_view_start_points(
     depth, in the vertical plane through the centre that faces the camera (a hand reaching towards
     or away from the camera is off that plane; the fit's ray-shaped targets leave it free there).
 
-    Returns (centre (3,) world m, [(X (3,), pixel count, (camera name,), ray direction (3,))],
-    largest first), or None when the centroid's ray does not come down to that height in front of
-    the camera (a camera at the centroid's height or below it, or one looking up: no floor cue).
+    Returns (centre (3,) world m, [(X (3,), pixel count, (camera name,))], largest first; every point
+    lies on its ray, so ``X - camera.center`` is its direction), or None when the centroid's ray does
+    not come down to that height in front of the camera (a camera at the centroid's height or below
+    it, or one looking up: no floor cue).
     """
     origin, dirs = camera.rays(np.asarray(foreground.mean, float).reshape(1, 2))
     d = dirs[0]
@@ -1263,7 +1264,7 @@ def one_view_start_points(
     n[2] = 0.0
     n /= np.linalg.norm(n)
     blobs = sorted(skin, key=lambda b: -b.pixel_count)[:max_points]
-    points: list[tuple[np.ndarray, float, tuple[str, ...], np.ndarray]] = []
+    points: list[tuple[np.ndarray, float, tuple[str, ...]]] = []
     if blobs:
         _, sd = camera.rays(np.array([np.asarray(b.mean, float) for b in blobs]).reshape(-1, 2))
         for b, ds in zip(blobs, sd, strict=True):
@@ -1271,14 +1272,15 @@ def one_view_start_points(
             if denom <= 1e-3:
                 continue
             s = float((centre - origin) @ n) / denom
-            points.append((origin + s * ds, float(b.pixel_count), (camera.name,), ds))
+            points.append((origin + s * ds, float(b.pixel_count), (camera.name,)))
     return centre, points
 
 
 def ray_information(direction: np.ndarray, sigma_across_m: float, sigma_along_m: float) -> np.ndarray:
-    """(3, 3) information of a point known to sigma_across_m off a viewing ray of unit
-    ``direction`` and to sigma_along_m along it (one view's point; depth from a weaker cue)."""
+    """(3, 3) information of a point known to sigma_across_m off a viewing ray of ``direction``
+    (any length) and to sigma_along_m along it (one view's point; depth from a weaker cue)."""
     d = np.asarray(direction, float).reshape(3)
+    d = d / np.linalg.norm(d)
     along = np.outer(d, d)
     return (np.eye(3) - along) / sigma_across_m**2 + along / sigma_along_m**2
 
@@ -1793,22 +1795,23 @@ class _Estimator:
         n = float(np.linalg.norm(d))
         return (cam.center, d / n) if n > 0 else None
 
+    def _one_view_cov(self, cov: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """A one-view blob's measurement covariance: ``cov``'s marginal across the ray of unit
+        ``direction`` (the prior's depth along it dropped) plus ``one_view_depth_sigma_m``² along it."""
+        along = np.outer(direction, direction)
+        across = np.eye(3) - along
+        return across @ cov @ across + along * self.cfg.measurement.one_view_depth_sigma_m**2
+
     def _blob_targets(self, obs: Mapping[str, Blob3D]) -> list[PointTarget]:
         out = []
-        depth_sigma = self.cfg.measurement.one_view_depth_sigma_m
         for lab, blob in obs.items():
             k = self.kin.blob_index[lab]
             cov = self.measurement_cov(blob)
             ray = self._one_view_ray(blob)
-            if ray is not None:
-                # One view: the depth along its ray is the prior's; keep the across-ray marginal only.
-                d = ray[1]
-                across = np.eye(3) - np.outer(d, d)
-                info = (np.linalg.pinv(across @ cov @ across, rcond=1e-9, hermitian=True)
-                        + np.outer(d, d) / depth_sigma**2)
-            else:
-                info = np.linalg.inv(cov)
-            out.append(PointTarget(int(self.kin.blob_links[k]), self.kin.blob_local[k], blob.mean, info))
+            if ray is not None:  # one view: the depth along its ray is the prior's
+                cov = self._one_view_cov(cov, ray[1])
+            out.append(PointTarget(int(self.kin.blob_links[k]), self.kin.blob_local[k], blob.mean,
+                                   np.linalg.inv(cov)))
         return out
 
     def _rest_at(self, position: np.ndarray, yaw: float) -> np.ndarray:
@@ -1870,25 +1873,27 @@ class _Estimator:
             skin, self.cameras, 6, s.match_gate_sigma, s.match_gate_px, s.missing_view_penalty_px
         )
         centre = None if centre_blob is None else centre_blob.mean
+        rest_p, rest_R = self.kin.poses(self.kin.rest)
         # One view (one camera sees the person): no ray meets another, depth comes from the floor.
-        rays: dict[int, np.ndarray] = {}  # id(point) -> its one view's ray direction
         fg_views = [c for c, bl in fg.items() if bl]
         one_view = (s.one_view_depth_sigma_m > 0 and centre is None and len(fg_views) == 1
                     and sum(1 for sk in skin.values() if sk) <= 1)
         if one_view:
             cam = self.cameras[fg_views[0]]
-            fg_blob = max(fg[cam.name], key=lambda b: b.pixel_count)
-            rest_p, rest_R = self.kin.poses(self.kin.rest)
             start = one_view_start_points(
-                cam, fg_blob, skin.get(cam.name, []),
+                cam, max(fg[cam.name], key=lambda b: b.pixel_count), skin.get(cam.name, []),
                 float((rest_p[0] + rest_R[0] @ self._centroid_local)[2]), s.max_skin_blobs_per_camera,
             )
             if start is None:
                 return None
-            centre, one = start
-            points = [(X, n, cams, None) for X, n, cams, _ in one]
-            rays = {id(p[0]): d for p, (_, _, _, d) in zip(points, one, strict=True)}
-            _, centre_ray = cam.rays(np.asarray(fg_blob.mean, float).reshape(1, 2))
+            centre, points = start
+
+        def held(x: np.ndarray, info: np.ndarray, sigma_across_m: float) -> np.ndarray:
+            """A start-up target's information: ``info``, or with one view held to x's ray only."""
+            if not one_view:
+                return info
+            return ray_information(x - cam.center, sigma_across_m, s.one_view_depth_sigma_m)
+
         if s.start_radius_m > 0:
             # Several people in view: start on the one standing within start_radius_m of start_xy
             # (skin points elsewhere belong to others; a foreground centre elsewhere mixes people).
@@ -1929,7 +1934,6 @@ class _Estimator:
         if not yaws:
             yaws = list(np.arange(4) * (np.pi / 2))
         head_k = self.kin.blob_index.get("head")
-        rest_p, rest_R = self.kin.poses(self.kin.rest)
         info_skin = np.eye(3) / s.skin_sigma_m**2
         best = None
         for yaw in yaws:
@@ -1940,9 +1944,8 @@ class _Estimator:
             head_target = face - s.face_offset_m * fwd
             if head_k is not None:
                 hl = int(self.kin.blob_links[head_k])
-                info_face = np.diag([1 / s.skin_sigma_m**2, 1 / s.skin_sigma_m**2, 1 / s.face_sigma_z_m**2])
-                if one_view:
-                    info_face = ray_information(rays[id(face)], s.skin_sigma_m, s.one_view_depth_sigma_m)
+                info_face = held(face, np.diag([1 / s.skin_sigma_m**2, 1 / s.skin_sigma_m**2,
+                                                1 / s.face_sigma_z_m**2]), s.skin_sigma_m)
                 targets.append(PointTarget(hl, self.kin.blob_local[head_k], head_target, info_face))
                 head_rest = self.kin.blob_points(rest_p, rest_R)[head_k]
                 root = head_target - Rz @ (head_rest - rest_p[0])
@@ -1955,15 +1958,12 @@ class _Estimator:
                     name = "l_hand" if float((x - axis) @ left) > 0 else "r_hand"
                 k = self.kin.blob_index.get(name)
                 if k is not None:
-                    info = (ray_information(rays[id(x)], s.skin_sigma_m, s.one_view_depth_sigma_m) if one_view
-                            else info_skin)
-                    targets.append(PointTarget(int(self.kin.blob_links[k]), self.kin.blob_local[k], x, info))
+                    targets.append(PointTarget(int(self.kin.blob_links[k]), self.kin.blob_local[k], x,
+                                               held(x, info_skin, s.skin_sigma_m)))
             if centre is not None:
-                info_c = np.diag(
+                info_c = held(centre, np.diag(
                     [1 / s.centroid_sigma_xy_m**2, 1 / s.centroid_sigma_xy_m**2, 1 / s.centroid_sigma_z_m**2]
-                )
-                if one_view:
-                    info_c = ray_information(centre_ray[0], s.centroid_sigma_xy_m, s.one_view_depth_sigma_m)
+                ), s.centroid_sigma_xy_m)
                 targets.append(PointTarget(0, self._centroid_local, centre, info_c))
             if s.standing_height_sigma_m > 0:  # standing on the floor (z = 0): pelvis near its rest height
                 info_h = np.diag([0.0, 0.0, 1.0 / s.standing_height_sigma_m**2])
@@ -2534,8 +2534,7 @@ class KinematicEstimator(_Estimator):
                 # ray nearest that fit's blob, to measurement.one_view_depth_sigma_m along the ray.
                 origin, d = ray
                 z[b] = origin + float((fit_centres[b] - origin) @ d) * d
-                across = np.eye(3) - np.outer(d, d)
-                Rm[b] = across @ Rm[b] @ across + np.outer(d, d) * self.cfg.measurement.one_view_depth_sigma_m**2
+                Rm[b] = self._one_view_cov(Rm[b], d)
                 r = z[b] - fit_centres[b]
                 fit_d2[lab] = float(r @ np.linalg.solve(Rm[b], r))
             S = self.blob_kf.P_prior[b, :3, :3] + Rm[b]
