@@ -480,17 +480,28 @@ def test_a_frame_reseeded_for_keeps_the_reseed_over_start_up_blobs(body, cameras
     assert np.linalg.norm(e.joints - target, axis=1).mean() < 0.15
 
 
-def test_dynamic_estimator_tracks(body, cameras):
-    est = make_estimator("dynamic", body, cameras, None)
+@pytest.mark.parametrize("follow_fit", [True, False])
+def test_dynamic_estimator_tracks(body, cameras, follow_fit):
+    """Both observation models of the full dynamics track a moving hand from noisy blobs: springs
+    toward the raw tracker's fit of the frame (the default, ``dynamic.follow_fit``; its warm-up
+    shortened to 3 frames, so the dynamics' own estimate is the output from then on) or toward the
+    triangulated blobs themselves."""
+    cfg = {"kinematic": {"warmup_frames": 3}, "dynamic": {"follow_fit": follow_fit}}
+    est = make_estimator("dynamic", body, cameras, cfg)
+    assert (est.raw is not None) == follow_fit
     rng = np.random.default_rng(1)
-    errs = []
+    errs, raw_differs = [], []
     for k in range(15):
         theta = pose_at("line", k / FPS, body)
         e = est.update(stamp(k), blobs_2d(body, cameras, theta, rng, 1.0))
         errs.append(np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean())
+        if follow_fit:
+            raw_differs.append(np.abs(e.joints - body.joint_positions(est.raw.theta)).max() > 1e-6)
         pred = est.predict(stamp(k + 1))
     assert e.status == STATUS_TRACKING and np.mean(errs[5:]) < 0.03
     assert [b.label for b in pred.blobs] == body.blob_labels
+    if follow_fit:  # the raw tracker's estimate for the warm-up, then the dynamics' own
+        assert not any(raw_differs[:3]) and all(raw_differs[4:])
 
 
 def test_dynamic_estimator_survives_a_failed_integration_step(body, cameras, monkeypatch):
@@ -997,7 +1008,7 @@ def test_kinematic_filters_warm_up_on_the_raw_trackers_estimate(body, cameras):
     est.reset()
     assert est._filter_frames == 0 and est.raw.theta is None
     assert make_estimator("kinematic", body, cameras, {"kinematic": {"fit_source": "own"}}).raw is None
-    assert make_estimator("dynamic", body, cameras, None).raw is None
+    assert make_estimator("dynamic", body, cameras, {"dynamic": {"follow_fit": False}}).raw is None
     with pytest.raises(InputError, match="kinematic.fit_source"):
         make_estimator("kinematic", body, cameras, {"kinematic": {"fit_source": "bogus"}})
 

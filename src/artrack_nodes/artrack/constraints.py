@@ -1054,6 +1054,7 @@ class ConstraintSolver:
         k_d: float | None = None,
         tol: float = 1e-9,
         project: bool = True,
+        stiffness_damping: float = 0.0,
     ) -> SolveResult:
         """Full-dynamics step (paper Eq. 1–5): ``q̈ = W (Q + Jᵀλ)`` with
         ``(J W Jᵀ) λ = −J W Q − J̇ q̇ − k_s c − k_d ċ``; springs linearly implicit
@@ -1061,8 +1062,10 @@ class ConstraintSolver:
         positions and velocities when ``project``.
 
         nu: (L, 6) twists [v, ω] (m/s, rad/s, world); dt: s; damping B: N·s/m and
-        N·m·s/rad (multiplied by each link's mass / inertia). k_s, k_d default to
-        the critically damped 1/dt², 2/dt.
+        N·m·s/rad (multiplied by each link's mass / inertia); ``stiffness_damping`` β (s) adds
+        stiffness-proportional (Rayleigh) damping ``β K``, which damps each spring mode in proportion
+        to its frequency (a light link on a stiff spring, e.g. a hand's spin on its rest-pose spring,
+        is otherwise almost undamped). k_s, k_d default to the critically damped 1/dt², 2/dt.
         """
         p, R = self._check(p, R)
         nu = np.array(nu, dtype=float).reshape(self.n_links, 6)
@@ -1076,6 +1079,8 @@ class ConstraintSolver:
         B = np.zeros_like(M)
         B[:, :3, :3] = linear_damping * M[:, :3, :3]
         B[:, 3:, 3:] = angular_damping * M[:, 3:, 3:]
+        if stiffness_damping > 0:
+            B = B + stiffness_damping * K
         W = self._weights(M + dt * B + dt * dt * K)
         Qv = (F - self.velocity_forces(R, nu) - np.einsum("nij,nj->ni", dt * K + B, nu)).ravel()
         c, J = self._assemble(p, R)

@@ -86,7 +86,15 @@ Kinds
 ``'dynamic'`` — full dynamics (paper §2.1): links with masses and inertias,
     observations as damped springs, ``q̈ = W (Q + Jᵀλ)`` integrated in
     sub-steps by ``ConstraintSolver.step_dynamic``; the prediction integrates the
-    same system forward without new observations.
+    same system forward without new observations. As the kinematic estimator, it runs the raw
+    tracker beside it (``dynamic.follow_fit``, ``kinematic.fit_source: baseline``): the springs pull
+    toward that tracker's robust fit of the frame (its blob centres, and torsional springs toward
+    its link orientations, ``dynamic.fit_orientation_stiffness``), which owns the track's life
+    cycle and is the output while the dynamics warm up (``kinematic.warmup_frames``). Springs on
+    the raw triangulated blobs instead (``follow_fit: false``, the form before stop 47) let a
+    mislabelled blob fling light links about, and the loop diverged (metres within seconds).
+    Stiffness-proportional damping (``dynamic.stiffness_damping_s``) damps the fast modes of light
+    links on stiff springs (a hand's spin about its own axis) that damping per unit mass leaves ringing.
 
 Representation: the skeleton state is the world pose of every link
 (``constraints.py``: each link a free rigid body, joints as constraints), so
@@ -396,15 +404,23 @@ class DynamicConfig:
     """Full dynamics (masses, springs, damping)."""
 
     substeps: int = 4
-    spring_scale: float = 0.2
-    spring_stiffness_max: float = 5000.0
-    linear_damping: float = 8.0
+    spring_scale: float = 1.0
+    spring_stiffness_max: float = 20000.0
+    linear_damping: float = 2.0
     angular_damping: float = 8.0
     rest_stiffness: float = 0.5
     limit_stiffness: float = 50.0
     gravity_weight: float = 2.0
     predict_velocity_sigma: float = 0.5
     outlier_fit_scale: float = 0.0
+    #: stiffness-proportional (Rayleigh) damping of the springs, s (0 = none; ConstraintSolver.step_dynamic)
+    stiffness_damping_s: float = 0.01
+    #: with kinematic.fit_source 'baseline': the observation springs pull toward the raw tracker's
+    #: robust body fit of the frame (its blob centres, one consistent body) instead of the triangulated
+    #: blobs, and the raw tracker owns the track's life cycle, as for the kinematic estimator
+    follow_fit: bool = True
+    #: torsional springs toward the raw tracker's link orientations (with follow_fit), N m/rad (0 = none)
+    fit_orientation_stiffness: float = 150.0
 
 
 @dataclass
@@ -2675,11 +2691,19 @@ class DynamicEstimator(KinematicEstimator):
     ``spring_stiffness_max`` N/m), viscous damping, rest-pose / joint-limit torsional
     springs and weak gravity on unobserved limbs, hard joints through the
     virtual-work constraint force; integrated by ``ConstraintSolver.step_dynamic``
-    in ``substeps`` per frame. The prediction integrates the same system on
-    without observation springs (momentum carries the links forward)."""
+    in ``substeps`` per frame with stiffness-proportional damping ``stiffness_damping_s``. The
+    prediction integrates the same system on without observation springs (momentum carries the
+    links forward). With ``follow_fit`` (module docstring) the springs' targets are the raw tracker's
+    fit of the frame, which also leads the track's life cycle as for :class:`KinematicEstimator`."""
 
     kind = "dynamic"
     blowups = 0  # integration steps dropped because the solve became non-finite
+
+    def __init__(self, body, cameras, config=None):
+        super().__init__(body, cameras, config)
+        if self.cfg.dynamic.follow_fit and self.cfg.kinematic.fit_source == "baseline":
+            self.raw = BaselineEstimator(body, cameras, config)
+            self._raw_initialisations = self.raw.initialisations
 
     def _initialise(self, stamp_ns, theta, obs):
         super()._initialise(stamp_ns, theta, obs)
@@ -2730,7 +2754,8 @@ class DynamicEstimator(KinematicEstimator):
         n = max(int(d.substeps), 1)
         for _ in range(n):
             try:
-                res = self.solver.step_dynamic(p, R, nu, dt / n, terms, d.linear_damping, d.angular_damping)
+                res = self.solver.step_dynamic(p, R, nu, dt / n, terms, d.linear_damping, d.angular_damping,
+                                               stiffness_damping=d.stiffness_damping_s)
             except np.linalg.LinAlgError:
                 res = None
             if res is None or not all(np.all(np.isfinite(a)) for a in (res.p, res.R, res.nu)):
@@ -2744,6 +2769,8 @@ class DynamicEstimator(KinematicEstimator):
     def _observation_springs(self, obs) -> list:
         d = self.cfg.dynamic
         _, fit_d2 = self._outlier_fit(obs, d.outlier_fit_scale)
+        fit = d.follow_fit and self._raw_tracking()
+        centres = self.body.blob_centres(self.raw.theta) if fit else None
         out = []
         for lab, blob in obs.items():
             b = self.kin.blob_index[lab]
@@ -2751,7 +2778,11 @@ class DynamicEstimator(KinematicEstimator):
             inflate = 1.0 + fit_d2.get(lab, 0.0) / max(d.outlier_fit_scale, 1e-9) ** 2
             w, V = np.linalg.eigh(np.linalg.inv(self.measurement_cov(blob) * inflate))
             S = (V * np.minimum(d.spring_scale * w, d.spring_stiffness_max)) @ V.T
-            out.append(PointGoal(int(self.kin.blob_links[b]), self.kin.blob_local[b], blob.mean, S))
+            target = centres[b] if fit else blob.mean
+            out.append(PointGoal(int(self.kin.blob_links[b]), self.kin.blob_local[b], target, S))
+        if fit and d.fit_orientation_stiffness > 0:
+            _, R_fit = self.kin.poses(self.raw.theta)
+            out += [OrientationGoal(i, R_fit[i], d.fit_orientation_stiffness) for i in range(self.kin.n_links)]
         return out
 
     def _triangulation_priors(self, stamp_ns):
@@ -2768,6 +2799,7 @@ class DynamicEstimator(KinematicEstimator):
 
     def _step(self, stamp_ns, obs):
         dt = max((stamp_ns - self.stamp_ns) * 1e-9, 0.0)
+        self._filter_frames += 1  # (the raw tracker leads for kinematic.warmup_frames of them, with follow_fit)
         springs = self._observation_springs(obs)
         if dt > 0:
             p, R, nu, terms = self._integrate(self.p, self.R, self.nu, dt, springs)
