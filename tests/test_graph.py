@@ -165,3 +165,24 @@ def test_graph_with_one_camera_equals_offline_track(one_camera_scene, env, tmp_p
     assert len(tracked) >= 15, "one camera should start after the background seed"
     worst = max(float(np.nanmax(np.abs(live[s] - offline[s]))) for s in tracked)
     assert worst <= 1e-9, f"live graph and offline pipeline differ by {worst:.3g} m with one camera"
+
+
+def test_graph_with_full_dynamics_equals_offline_track(small_scene, env, tmp_path):
+    """The full-dynamics skeleton (``estimator: dynamic``: the raw tracker beside the dynamics, whose
+    springs pull toward its fit, stop 47) in the live graph, with the same joints as `artrack track
+    --estimator dynamic`. A 5-frame warm-up, so that the dynamics' own estimate, not the raw tracker's,
+    is the output for most of the scene's ~25 tracked frames."""
+    cfg = yaml.safe_load((REPO / "config" / "skeleton.yaml").read_text())
+    cfg["kinematic"]["warmup_frames"] = 5
+    path = tmp_path / "skeleton.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    rec = _launch(tmp_path, small_scene, env, "estimator=dynamic", f"skeleton_config={path}")
+    run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "offline"), "--estimator", "dynamic",
+                "--skeleton-config", str(path), "--quiet")
+    live = _bodies(rec)
+    offline = _bodies(tmp_path / "offline" / "track")
+    assert sorted(live) == sorted(offline) and len(offline) == FRAMES
+    tracked = [s for s in offline if not np.isnan(offline[s]).all()]
+    assert len(tracked) >= 15
+    worst = max(float(np.nanmax(np.abs(live[s] - offline[s]))) for s in tracked)
+    assert worst <= 1e-9, f"live graph and offline pipeline differ by {worst:.3g} m with the full dynamics"
