@@ -49,18 +49,25 @@ def _bodies(bag: Path) -> dict[int, np.ndarray]:
                 (body_from_msg(m) for _, _, m in reader.messages(["/artrack/body"]))}
 
 
+def _assert_same_bodies(live_bag: Path, offline_bag: Path, what: str) -> tuple[dict[int, np.ndarray], list[int]]:
+    """The graph's recorded bodies equal the offline run's: every frame of the bag estimated exactly
+    once, NaN joints (frames before start-up) in the same frames, the tracked joints to 1e-9.
+    Returns (the offline bodies, the stamps of their tracked frames)."""
+    live, offline = _bodies(live_bag), _bodies(offline_bag)
+    assert len(offline) == FRAMES
+    assert sorted(live) == sorted(offline), f"{what}: the graph must estimate every frame of the bag exactly once"
+    for s in offline:
+        assert np.array_equal(np.isnan(live[s]), np.isnan(offline[s])), f"{what}: NaN joints differ at stamp {s}"
+    tracked = [s for s in offline if not np.isnan(offline[s]).all()]
+    assert len(tracked) >= 15, f"{what}: the tracker should be running after the background seed"
+    worst = max(float(np.nanmax(np.abs(live[s] - offline[s]))) for s in tracked)
+    assert worst <= 1e-9, f"{what}: live graph and offline pipeline differ by {worst:.3g} m"
+    return offline, tracked
+
+
 def test_graph_equals_offline_track(graph_run, small_scene, env, tmp_path):
     run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "offline"), "--quiet")
-    live = _bodies(graph_run)
-    offline = _bodies(tmp_path / "offline" / "track")
-    assert len(offline) == FRAMES
-    assert sorted(live) == sorted(offline), "the graph must estimate every frame of the bag exactly once"
-    for s in offline:  # frames before start-up carry NaN joints, in both
-        assert np.array_equal(np.isnan(live[s]), np.isnan(offline[s])), f"NaN joints differ at stamp {s}"
-    tracked = [s for s in offline if not np.isnan(offline[s]).all()]
-    assert len(tracked) >= 15, "the tracker should be running after the background seed"
-    worst = max(float(np.nanmax(np.abs(live[s] - offline[s]))) for s in tracked)
-    assert worst <= 1e-9, f"live graph and offline pipeline differ by {worst:.3g} m"
+    _assert_same_bodies(graph_run, tmp_path / "offline" / "track", "blobs")
 
 
 def test_priors_flow_back_and_are_used(graph_run):
@@ -127,14 +134,8 @@ def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small
     run_artrack(env, "track", str(small_scene), "--edges", "--edge-config", str(edge_config),
                 "--out", str(tmp_path / "offline"), "--quiet")
     run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "blobs"), "--quiet")
-    live = _bodies(graph_run_edges)
-    offline = _bodies(tmp_path / "offline" / "track")
+    offline, tracked = _assert_same_bodies(graph_run_edges, tmp_path / "offline" / "track", "with edges")
     blobs_only = _bodies(tmp_path / "blobs" / "track")
-    assert sorted(live) == sorted(offline) and len(offline) == FRAMES
-    tracked = [s for s in offline if not np.isnan(offline[s]).all()]
-    assert len(tracked) >= 15
-    worst = max(float(np.nanmax(np.abs(live[s] - offline[s]))) for s in tracked)
-    assert worst <= 1e-9, f"live graph and offline pipeline with edges differ by {worst:.3g} m"
     assert max(float(np.nanmax(np.abs(blobs_only[s] - offline[s]))) for s in tracked) > 1e-3
     with open_bag(graph_run_edges) as reader:
         counts = {}
@@ -158,13 +159,7 @@ def test_graph_with_one_camera_equals_offline_track(one_camera_scene, env, tmp_p
     joints as `artrack track` on the same bag."""
     rec = _launch(tmp_path, one_camera_scene, env, "cameras=[cam01]")
     run_artrack(env, "track", str(one_camera_scene), "--out", str(tmp_path / "offline"), "--quiet")
-    live = _bodies(rec)
-    offline = _bodies(tmp_path / "offline" / "track")
-    assert sorted(live) == sorted(offline) and len(offline) == FRAMES
-    tracked = [s for s in offline if not np.isnan(offline[s]).all()]
-    assert len(tracked) >= 15, "one camera should start after the background seed"
-    worst = max(float(np.nanmax(np.abs(live[s] - offline[s]))) for s in tracked)
-    assert worst <= 1e-9, f"live graph and offline pipeline differ by {worst:.3g} m with one camera"
+    _assert_same_bodies(rec, tmp_path / "offline" / "track", "one camera")
 
 
 def test_graph_with_full_dynamics_equals_offline_track(small_scene, env, tmp_path):
@@ -179,10 +174,4 @@ def test_graph_with_full_dynamics_equals_offline_track(small_scene, env, tmp_pat
     rec = _launch(tmp_path, small_scene, env, "estimator=dynamic", f"skeleton_config={path}")
     run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "offline"), "--estimator", "dynamic",
                 "--skeleton-config", str(path), "--quiet")
-    live = _bodies(rec)
-    offline = _bodies(tmp_path / "offline" / "track")
-    assert sorted(live) == sorted(offline) and len(offline) == FRAMES
-    tracked = [s for s in offline if not np.isnan(offline[s]).all()]
-    assert len(tracked) >= 15
-    worst = max(float(np.nanmax(np.abs(live[s] - offline[s]))) for s in tracked)
-    assert worst <= 1e-9, f"live graph and offline pipeline differ by {worst:.3g} m with the full dynamics"
+    _assert_same_bodies(rec, tmp_path / "offline" / "track", "full dynamics")
