@@ -221,6 +221,9 @@ class BlobTrackerConfig:
     skin_rg_correlation: float = 0.0
     #: pixels darker than this intensity (0..1) are never skin (hair, deep shadow)
     skin_min_intensity: float = 0.25
+    #: pixels whose chroma r - g is below this are never skin (skin is red before green; neutral greys
+    #: -- the floor, a wall, the ghost of the start position -- lie within the broad default model)
+    skin_min_red_excess: float = 0.02
     #: colour class of a part's blob, overriding the body model's ({label: class}; e.g. a person with a
     #: bare torso and bare shins: {torso: skin, l_shin: skin, r_shin: skin}); empty = the body model's
     part_colours: dict[str, str] = field(default_factory=dict)
@@ -385,10 +388,10 @@ class BlobTrackerConfig:
                 isinstance(x, str) and x for x in self.background_ghost_detached):
             raise bad("background_ghost_detached", "must be a list of label names")
         self.background_ghost_detached = tuple(self.background_ghost_detached)
-        non_negative = ("connected_gap_px", "skin_min_intensity", "startup_skin_max_fraction", "temporal_velocity",
-                        "temporal_motion_px", "min_component_fraction", "background_ghost_edge_ratio",
-                        "prior_confidence_inflation", "background_max_sigma", "max_prior_area_ratio",
-                        "colour_room_gate")
+        non_negative = ("connected_gap_px", "skin_min_intensity", "skin_min_red_excess", "startup_skin_max_fraction",
+                        "temporal_velocity", "temporal_motion_px", "min_component_fraction",
+                        "background_ghost_edge_ratio", "prior_confidence_inflation", "background_max_sigma",
+                        "max_prior_area_ratio", "colour_room_gate")
         for name in non_negative:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
@@ -430,13 +433,15 @@ class ColourModel:
     """Gaussian colour model of one colour class over (r, g, I): mean (3,), cov (3, 3).
 
     ``learned`` is False while the model is still the configured default (replaced, not
-    blended, by the first statistics); ``min_intensity`` rejects darker pixels outright.
+    blended, by the first statistics); ``min_intensity`` rejects darker pixels outright, and
+    ``min_red_excess`` pixels whose chroma r - g is smaller.
     """
 
     mean: np.ndarray
     cov: np.ndarray
     learned: bool = False
     min_intensity: float = 0.0
+    min_red_excess: float = 0.0
     #: the last whitening computed and what it was computed from (mean, cov, floors, features)
     _whitening: tuple | None = field(default=None, repr=False, compare=False)
 
@@ -471,18 +476,28 @@ class ColourModel:
         c = np.asarray(colours, _F32).reshape(-1, 3)
         z = c @ A[:, :3].T + A[:, 3]
         d2 = np.einsum("ij,ij->i", z, z)
-        if self.min_intensity > 0:
-            d2[c[:, 2] < self.min_intensity] = np.inf
+        d2[~self.admits(c)] = np.inf
         return d2
+
+    def admits(self, colours: np.ndarray) -> np.ndarray:
+        """(N,) bool: the colours (N, 3) that pass ``min_intensity`` and ``min_red_excess``."""
+        c = np.asarray(colours).reshape(-1, 3)
+        ok = np.ones(c.shape[0], bool)
+        if self.min_intensity > 0:
+            ok &= c[:, 2] >= self.min_intensity
+        if self.min_red_excess > 0:
+            ok &= (c[:, 0] - c[:, 1]) >= self.min_red_excess
+        return ok
 
 
 def skin_model(config: BlobTrackerConfig) -> ColourModel:
     """The configured default skin colour model (``skin_mean``, ``skin_sigma``, ``skin_rg_correlation``,
-    ``skin_min_intensity``)."""
+    ``skin_min_intensity``, ``skin_min_red_excess``)."""
     sr, sg, si = config.skin_sigma
     rho = config.skin_rg_correlation
     cov = np.array([[sr * sr, rho * sr * sg, 0.0], [rho * sr * sg, sg * sg, 0.0], [0.0, 0.0, si * si]])
-    return ColourModel(np.array(config.skin_mean, float), cov, False, config.skin_min_intensity)
+    return ColourModel(np.array(config.skin_mean, float), cov, False, config.skin_min_intensity,
+                       config.skin_min_red_excess)
 
 
 def configured_model(config: BlobTrackerConfig, colour_class: str) -> ColourModel | None:
@@ -1044,9 +1059,7 @@ class BlobTracker2D:
                 z = f @ A[:, :3].T + A[:, 3]
                 dc2 = np.einsum("ij,ij->i", z, z)
                 dc2s.append(dc2)
-                ok = dc2 <= gc2
-                if m.colour.min_intensity > 0:
-                    ok &= f[:, 2] >= m.colour.min_intensity
+                ok = (dc2 <= gc2) & m.colour.admits(f)
                 log_prior = m.log_confidence - 0.5 * math.log(m.det)
                 const = m.weight * log_prior - 0.5 * logdet_c
                 score = _F32(const) - 0.5 * (dc2 + _F32(m.weight) * ds2)
