@@ -269,6 +269,40 @@ def test_startup_from_foreground_and_skin_gives_right_facing(body, cameras, yaw)
     assert np.linalg.norm(e.joints - body.joint_positions(theta), axis=1).mean() < 0.06
 
 
+@pytest.mark.parametrize("yaw", [0.0, 1.2, 2.6, -2.0])
+def test_startup_reads_the_heading_from_the_face_sizes(body, cameras, yaw):
+    """The rotation scene's start: the right hand raised forward, the left at the side, so the line
+    between the hands runs diagonally, and the face skin blob no farther forward than the head's
+    centre (no offset from the body axis to read). The face's blob is ~4x larger (at 1 m) in the
+    views it looks at than from behind (the face check's cue, :func:`facing_direction`): with
+    ``startup.facing_from_sizes`` the start heading is within 10 deg, without it ~48 deg off (the
+    diagonal hand line's), the hands fitted either way."""
+    theta = body.rest_pose()
+    theta[0:6] = [0.3, -0.2, 0.95, 0.0, 0.0, yaw]
+    theta[body.dof_slice("r_upper_arm")] = [0.0, -1.2, 0.0]  # raised forward
+    blobs = startup_blobs(body, cameras, theta, face_forward=0.0)
+    means, _ = body.blob_gaussians(theta)
+    face = means[body.blob_labels.index("head")]
+    forward = np.array([math.cos(yaw), math.sin(yaw)])
+    for cam in cameras:
+        uv, _ = cam.project(face[None])
+        face_blob = min((b for b in blobs[cam.name] if b.label == "skin"), key=lambda b: np.linalg.norm(b.mean - uv[0]))
+        to_cam = np.asarray(cam.center) - face
+        size = 400 * (1 + 0.6 * forward @ (to_cam[:2] / np.linalg.norm(to_cam[:2]))) / (to_cam @ to_cam)
+        blobs[cam.name] = [dataclasses.replace(b, pixel_count=int(round(size))) if b is face_blob else b
+                           for b in blobs[cam.name]]
+    centres = body.blob_centres(theta)
+    errors = {}
+    for sizes in (True, False):
+        e = make_estimator("baseline", body, cameras, {"startup": {"facing_from_sizes": sizes}}).update(stamp(0), blobs)
+        assert e.status == STATUS_TRACKING
+        R = e.links[0].rotation
+        errors[sizes] = math.degrees(abs((math.atan2(R[1, 0], R[0, 0]) - yaw + np.pi) % (2 * np.pi) - np.pi))
+        for label in ("l_hand", "r_hand"):
+            assert np.linalg.norm(_hand(e, label) - centres[body.blob_labels.index(label)]) < 0.05, (sizes, label)
+    assert errors[True] < 10 and errors[False] > 35, errors
+
+
 def test_startup_picks_the_person_at_start_xy(body, cameras):
     """Two people in view: the other one stands 0.25 m higher (on a step), so their face is the
     highest skin point and the plain start-up (no start radius, no person grouping) takes it.

@@ -453,6 +453,10 @@ class StartupConfig:
     #: centroid's ray comes down to the rest pose's centroid height, held to their rays, and to this
     #: sigma (m) along them (:func:`one_view_start_points`); 0 = no start-up from one view
     one_view_depth_sigma_m: float = 0.3
+    #: the start-up heading is read from the face's 2-D blob sizes (:func:`facing_direction`, the face check's
+    #: cue: face in front, neck behind) when they say something, else from the face's offset from the
+    #: foreground centroid; False = always the offset
+    facing_from_sizes: bool = True
 
 
 @dataclass
@@ -1937,7 +1941,9 @@ class _Estimator:
             and len(p[2]) >= need
         ][:2]
         yaw_face = None
-        if centre is not None and not one_view:  # (one view: the face's offset in depth is unseen)
+        if s.facing_from_sizes and not one_view:
+            yaw_face = self._startup_face_heading(face, skin)
+        if yaw_face is None and centre is not None and not one_view:  # (one view: the face's offset in depth is unseen)
             off = (face - centre)[:2]
             if np.linalg.norm(off) > s.min_facing_offset_m:
                 yaw_face = math.atan2(off[1], off[0])
@@ -1998,6 +2004,33 @@ class _Estimator:
             if best is None or cost < best[1]:
                 best = (theta, cost)
         return best[0]
+
+    def _startup_face_heading(self, face: np.ndarray, skin: Mapping[str, Sequence[Blob2D]]) -> float | None:
+        """The start-up heading (rad) the face's blob sizes point to (:func:`facing_direction`; the face
+        check's cue, ``tracking.facing_min_size_ratio``): in each camera the skin blob nearest the
+        projection of the start-up face point ``face`` (world m) within the match gate, None when fewer
+        than three views have one or the sizes say nothing. On the synthetic scenes' first tracked
+        frame it lay within 7-39 deg of the true heading (default scene, seeds 1-26; 2-3 deg in the rotation
+        scene), while starts from the face's offset from the foreground centroid (a few cm) and the line
+        between the hands (wrong when one is raised forward, as in the rotation scene) were off by up to
+        159 deg (ALGORITHMS.md §1, automatic start-up)."""
+        s = self.cfg.startup
+        blobs = {}
+        for name, bl in skin.items():
+            if not bl or name not in self.cameras:
+                continue
+            uv, depth = self.cameras[name].project(face[None])
+            if depth[0] <= 0:
+                continue
+            best = None
+            for b in bl:
+                inside, d_px = _in_gate(b, uv[0], s.match_gate_sigma, s.match_gate_px)
+                if inside and (best is None or d_px < best[0]):
+                    best = (d_px, b)
+            if best is not None:
+                blobs[name] = best[1]
+        way = facing_direction(blobs, self.cameras, face, self.cfg.tracking.facing_min_size_ratio)
+        return None if way is None else math.atan2(way[1], way[0])
 
     # -- output ----------------------------------------------------------------
     def _blob_list(
