@@ -1145,6 +1145,16 @@ def _in_gate(blob: Blob2D, uv: np.ndarray, gate_sigma: float, gate_px: float) ->
     return (d2 <= gate_sigma**2 or d_px <= gate_px), d_px
 
 
+def _nearest_in_gate(blobs: Sequence[Blob2D], uv: np.ndarray, gate_sigma: float, gate_px: float) -> int | None:
+    """Index of the blob nearest (px) to ``uv`` among those whose gate (:func:`_in_gate`) holds it, or None."""
+    best, best_d = None, np.inf
+    for k, blob in enumerate(blobs):
+        inside, d = _in_gate(blob, uv, gate_sigma, gate_px)
+        if inside and d < best_d:
+            best, best_d = k, d
+    return best
+
+
 def nearest_person(points: list, xy: np.ndarray, gap_m: float) -> list:
     """The start-up skin points (:func:`match_skin_blobs` tuples, point first) of the person nearest
     ``xy`` (2,) m: the points are grouped by single linkage on their horizontal distances (groups
@@ -1218,11 +1228,7 @@ def match_skin_blobs(
                     uv, depth = cameras[ck].project(X[None])
                     if depth[0] <= 0:
                         continue
-                    best, best_d = None, np.inf
-                    for k, bk in enumerate(skin_by_camera[ck]):
-                        inside, d = _in_gate(bk, uv[0], gate_sigma, gate_px)
-                        if inside and d < best_d:
-                            best, best_d = k, d
+                    best = _nearest_in_gate(skin_by_camera[ck], uv[0], gate_sigma, gate_px)
                     if best is not None:
                         members[ck] = best
                 key = frozenset(members.items())
@@ -2022,13 +2028,9 @@ class _Estimator:
             uv, depth = self.cameras[name].project(face[None])
             if depth[0] <= 0:
                 continue
-            best = None
-            for b in bl:
-                inside, d_px = _in_gate(b, uv[0], s.match_gate_sigma, s.match_gate_px)
-                if inside and (best is None or d_px < best[0]):
-                    best = (d_px, b)
-            if best is not None:
-                blobs[name] = best[1]
+            k = _nearest_in_gate(bl, uv[0], s.match_gate_sigma, s.match_gate_px)
+            if k is not None:
+                blobs[name] = bl[k]
         way = facing_direction(blobs, self.cameras, face, self.cfg.tracking.facing_min_size_ratio)
         return None if way is None else math.atan2(way[1], way[0])
 
