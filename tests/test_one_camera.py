@@ -19,7 +19,7 @@ from artrack.skeleton import (
     GroundContact,
     PointTarget,
     SkeletonConfig,
-    UprightTrunk,
+    UprightSegment,
     fit_pose,
     load_skeleton_config,
     make_estimator,
@@ -142,7 +142,7 @@ def test_upright_trunk_holds_the_thorax_over_the_pelvis(body):
     rest[2] = 0.95
     T = body.forward_kinematics(rest)
     names = list(body.joint_names)
-    upright = UprightTrunk.from_body(body, 0.02)
+    upright = UprightSegment.from_body(body, 0.02)
     assert np.allclose(upright.residuals(T), 0.0)
     torso = body.link_names.index("torso")
     top = body.joint_positions(rest)[names.index("thorax")]
@@ -156,7 +156,7 @@ def test_upright_trunk_holds_the_thorax_over_the_pelvis(body):
         j = body.joint_positions(theta)
         lean[name] = float(np.linalg.norm((j[names.index("thorax")] - j[names.index("pelvis")])[:2]))
     assert lean["plain"] > 0.15 and lean["upright"] < 0.05, lean
-    terms = BodyTerms([GroundContact.from_body(body, 0.01), UprightTrunk.from_body(body, 0.1)])
+    terms = BodyTerms([GroundContact.from_body(body, 0.01), UprightSegment.from_body(body, 0.1)])
     theta = body.clip(rest + np.random.default_rng(2).normal(0.0, 0.2, body.n_dof))
     theta[2] = 0.9  # (the lower ankle below the floor: the floor rows are active)
     J = terms.jacobian(body, theta, body.forward_kinematics(theta))
@@ -166,7 +166,7 @@ def test_upright_trunk_holds_the_thorax_over_the_pelvis(body):
     assert J.shape == (5, body.n_dof) and np.abs(J[3:]).max() > 1.0
     np.testing.assert_allclose(J, J_num, atol=1e-3)
     with pytest.raises(InputError, match="'chin'"):
-        UprightTrunk.from_body(body, 0.1, top="chin")
+        UprightSegment.from_body(body, 0.1, top="chin")
 
 
 def test_few_cameras_section_applies_to_one_or_two_cameras_only():

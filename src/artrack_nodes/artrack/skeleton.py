@@ -161,7 +161,7 @@ camera, ran away (metres within seconds). The body fits count such blobs across 
 (``measurement.one_view_depth_sigma_m`` along it), the kinematic filters take their depth from
 the frame's body fit (the ray's point nearest that fit's blob), and the fits get what one view
 lacks: the floor contact (``fit.ground_sigma_m``) and an upright trunk (``fit.upright_sigma_m``,
-:class:`UprightTrunk`): on descending rays, a body standing on the floor has one depth.
+:class:`UprightSegment`): on descending rays, a body standing on the floor has one depth.
 
 Units: metres, radians, seconds (stamps in integer ns); world frame z up.
 """
@@ -230,6 +230,7 @@ __all__ = [
     "fit_pose",
     "load_skeleton_config",
     "make_estimator",
+    "blob_size_m",
     "match_skin_blobs",
 ]
 
@@ -348,8 +349,11 @@ class FitConfig:
     edge_sigma_px: float = 1.0
     edge_min_found: int = 8
     ground_sigma_m: float = 0.0
-    #: soft upright trunk (:class:`UprightTrunk`): sigma of the thorax' horizontal offset from the pelvis, m; 0 = off
+    #: soft upright trunk (:class:`UprightSegment`): sigma of the thorax' horizontal offset from the pelvis, m; 0 = off
     upright_sigma_m: float = 0.0
+    #: soft upright head (:meth:`UprightSegment.link_axis`): sigma of the head joint's horizontal offset
+    #: from the neck pivot (the head link's origin), beyond the rest pose's, m; 0 = off
+    upright_head_sigma_m: float = 0.03
     floor_z_m: float = 0.0
     axis_label: str = "torso"
     axis_sigma_rad: float = 0.35
@@ -445,6 +449,9 @@ class StartupConfig:
     start_radius_m: float = 0.0
     heading_sigma_rad: float = 0.35
     min_hand_views: int = 3
+    #: a start-up skin blob larger than this (m, the side of its area's square at the matched point's
+    #: depth, :func:`blob_size_m`) sees the point but does not locate it (:func:`match_skin_blobs`); 0 = off
+    max_skin_size_m: float = 0.32
     #: skin points farther apart than this horizontally (single linkage) are different people; with
     #: several, start-up starts on the fullest group (up to three points) whose highest point (the
     #: face) is nearest ``start_xy`` (:func:`nearest_person`); 0 = off
@@ -829,25 +836,42 @@ class GroundContact:
 
 
 @dataclass
-class UprightTrunk:
-    """Soft upright trunk for :func:`fit_pose`, one of the soft priors of ALGORITHMS.md §1 ("Soft
-    constraints": gravity, rest pose, joint limits); with one view, a trunk leaning towards or away
-    from the camera looks the same, and a standing or walking person keeps it near vertical: residuals
-    ``(x_top − x_bottom)_xy / sigma``, the horizontal offset (m) of the output joint ``top`` (e.g. the
-    thorax) from ``bottom`` (the pelvis), world z up; sigma m. Same interface as :class:`GroundContact`."""
+class UprightSegment:
+    """A soft upright body segment for :func:`fit_pose`, one of the soft priors of ALGORITHMS.md §1
+    ("Soft constraints": gravity, rest pose, joint limits): residuals ``(x_top − x_bottom)_xy / sigma``,
+    the horizontal offset (m) of a top point from a bottom one (link points), world z up; sigma m. Same
+    interface as :class:`GroundContact`. The trunk (pelvis → thorax, ``fit.upright_sigma_m``): with one
+    view, a trunk leaning towards or away from the camera looks the same, and a standing or walking
+    person keeps it near vertical. The head (its link's axis, :meth:`link_axis`,
+    ``fit.upright_head_sigma_m``): the head's blob (the face) sits a few cm from the neck pivot and
+    barely observes its pitch, and a person keeps the head near upright."""
 
     links: np.ndarray  # (2,) link of bottom, top
     local: np.ndarray  # (2, 3) their points in the link frames
     sigma: float
 
     @classmethod
-    def from_body(cls, body: BodyModel, sigma: float, bottom: str = "pelvis", top: str = "thorax") -> UprightTrunk:
+    def from_body(cls, body: BodyModel, sigma: float, bottom: str = "pelvis", top: str = "thorax") -> UprightSegment:
         names = list(body.joint_names)
         for n in (bottom, top):
             if n not in names:
-                raise InputError(f"skeleton: the upright trunk needs joint '{n}', which the body model has not")
+                raise InputError(f"skeleton: an upright segment ({bottom} -> {top}) needs joint '{n}', "
+                                 "which the body model has not")
         k = [names.index(bottom), names.index(top)]
         return cls(np.asarray(body.joint_links)[k], np.asarray(body.joint_points, float)[k], float(sigma))
+
+    @classmethod
+    def link_axis(cls, body: BodyModel, sigma: float, link: str, joint: str) -> UprightSegment:
+        """The link's own z axis upright (the body model's rest pose stands every link's z axis
+        vertical): from the link's origin to the height of the output joint ``joint`` on it."""
+        if link not in body.link_names or joint not in body.joint_names:
+            raise InputError(f"skeleton: an upright {link} needs link '{link}' and joint '{joint}', "
+                             "which the body model has not")
+        i, j = body.link_names.index(link), body.joint_names.index(joint)
+        if int(body.joint_links[j]) != i:
+            raise InputError(f"skeleton: an upright {link}: joint '{joint}' is not on link '{link}'")
+        h = float(np.asarray(body.joint_points, float)[j][2])
+        return cls(np.array([i, i]), np.array([[0.0, 0.0, 0.0], [0.0, 0.0, h]]), float(sigma))
 
     def residuals(self, world_from_link: np.ndarray) -> np.ndarray:
         """(..., 2) whitened residuals for poses (..., L, 4, 4)."""
@@ -1177,6 +1201,16 @@ def nearest_person(points: list, xy: np.ndarray, gap_m: float) -> list:
     return [p for p, g in zip(points, group, strict=True) if g == best]
 
 
+def blob_size_m(camera: Camera, blob: Blob2D, point: np.ndarray) -> float:
+    """The physical size (m) a 2-D blob implies at the 3-D ``point`` (world m): the side of the square
+    of its area, as a uniform ellipse of its covariance (area 4π √det C px²), at the point's depth
+    (pinhole scale depth / f)."""
+    _, depth = camera.project(np.asarray(point, float).reshape(1, 3))
+    det = max(float(np.linalg.det(np.asarray(blob.cov, float).reshape(2, 2))), 0.0)
+    f = math.sqrt(float(camera.K[0, 0]) * float(camera.K[1, 1]))
+    return math.sqrt(4.0 * math.pi * math.sqrt(det)) * float(depth[0]) / f
+
+
 def match_skin_blobs(
     skin_by_camera: Mapping[str, Sequence[Blob2D]],
     cameras: Mapping[str, Camera],
@@ -1184,6 +1218,7 @@ def match_skin_blobs(
     gate_sigma: float = 3.0,
     gate_px: float = 4.0,
     missing_view_penalty_px: float = 10.0,
+    max_size_m: float = 0.0,
 ) -> list[tuple[np.ndarray, float, tuple[str, ...], Blob3D]]:
     """Match unlabelled skin blobs across views into at most ``max_points`` 3-D points.
 
@@ -1192,9 +1227,13 @@ def match_skin_blobs(
     covariance, or ≤ gate_px) seeds a candidate, which is extended by the gated
     nearest blob of every other camera and triangulated; its score is the mean
     reprojection error (px) plus ``missing_view_penalty_px`` per camera with skin
-    blobs that it does not use. Candidates are taken greedily by score, never
-    sharing a 2-D blob. Returns [(X (3,) world m, score px, camera names, the triangulated
-    Blob3D (label 'skin'))], best first.
+    blobs that it does not see. Candidates are taken greedily by score, never
+    sharing a 2-D blob. ``max_size_m`` > 0: a blob larger than this at the point
+    (:func:`blob_size_m`; a hand merged in that view with a ghost of the background or
+    another skin region) sees the point but does not locate it: it counts among the
+    point's views, not in its triangulation, and cannot seed a pair. Returns [(X (3,)
+    world m, score px, the names of the cameras that see it, the triangulated Blob3D
+    (label 'skin'; its cameras those that locate it))], best first.
     """
     names = sorted(c for c, bl in skin_by_camera.items() if len(bl) and c in cameras)
     if len(names) < 2:
@@ -1220,8 +1259,12 @@ def match_skin_blobs(
                     if depth[0] <= 0 or not _in_gate(skin_by_camera[c][k], uv[0], gate_sigma, gate_px)[0]:
                         ok = False
                         break
+                    if max_size_m > 0 and blob_size_m(cameras[c], skin_by_camera[c][k], X) > max_size_m:
+                        ok = False
+                        break
                 if not ok:
                     continue
+                oversized: dict[str, int] = {}
                 for ck in names:
                     if ck in members:
                         continue
@@ -1229,9 +1272,13 @@ def match_skin_blobs(
                     if depth[0] <= 0:
                         continue
                     best = _nearest_in_gate(skin_by_camera[ck], uv[0], gate_sigma, gate_px)
-                    if best is not None:
+                    if best is None:
+                        continue
+                    if max_size_m > 0 and blob_size_m(cameras[ck], skin_by_camera[ck][best], X) > max_size_m:
+                        oversized[ck] = best
+                    else:
                         members[ck] = best
-                key = frozenset(members.items())
+                key = frozenset(members.items()) | frozenset(oversized.items())
                 if key in cands:
                     continue
                 blob = triangulate_blob(
@@ -1243,8 +1290,9 @@ def match_skin_blobs(
                 for c, k in members.items():
                     uv, _ = cameras[c].project(blob.mean[None])
                     errs.append(float(np.linalg.norm(uv[0] - np.asarray(skin_by_camera[c][k].mean, float))))
-                score = float(np.mean(errs)) + missing_view_penalty_px * (len(names) - len(members))
-                cands[key] = (blob.mean, score, tuple(sorted(members)), blob)
+                seen = len(members) + len(oversized)
+                score = float(np.mean(errs)) + missing_view_penalty_px * (len(names) - seen)
+                cands[key] = (blob.mean, score, tuple(sorted([*members, *oversized])), blob)
     out = []
     used: set = set()
     for key, (X, score, cams, blob) in sorted(cands.items(), key=lambda kv: kv[1][1]):
@@ -1329,8 +1377,13 @@ class _Estimator:
         #: soft floor contact of the body fits (baseline frames, initialisation), or None
         terms = [GroundContact.from_body(body, f.ground_sigma_m, f.floor_z_m)] if f.ground_sigma_m > 0 else []
         if f.upright_sigma_m > 0:
-            terms.append(UprightTrunk.from_body(body, f.upright_sigma_m))
-        #: soft floor contact and upright trunk of the body fits, or None
+            terms.append(UprightSegment.from_body(body, f.upright_sigma_m))
+        #: the upright head (``fit.upright_head_sigma_m``), also in the kinematic filters' outlier fit
+        self._upright_head = (UprightSegment.link_axis(body, f.upright_head_sigma_m, "head", "head")
+                              if f.upright_head_sigma_m > 0 else None)
+        if self._upright_head is not None:
+            terms.append(self._upright_head)
+        #: soft floor contact, upright trunk and head of the body fits, or None
         self._ground = None if not terms else terms[0] if len(terms) == 1 else BodyTerms(terms)
         self._reach = self._arm_reach()
         sided = {lab[2:] for lab in body.blob_labels if lab[:2] == "l_" and "r_" + lab[2:] in body.blob_labels}
@@ -1896,7 +1949,7 @@ class _Estimator:
             sk = sorted((b for b in bl if b.label == SKIN), key=lambda b: -b.pixel_count)
             skin[c] = sk[: s.max_skin_blobs_per_camera]
         points = match_skin_blobs(
-            skin, self.cameras, 6, s.match_gate_sigma, s.match_gate_px, s.missing_view_penalty_px
+            skin, self.cameras, 6, s.match_gate_sigma, s.match_gate_px, s.missing_view_penalty_px, s.max_skin_size_m
         )
         centre = None if centre_blob is None else centre_blob.mean
         rest_p, rest_R = self.kin.poses(self.kin.rest)
@@ -2672,6 +2725,7 @@ class KinematicEstimator(_Estimator):
                 f.max_nfev,
                 f.robust_scale,
                 link_goals=self._edge_goals() if own_track else None,
+                ground=self._upright_head,
                 tolerance=f.tolerance,
             )
         if own_track:
