@@ -23,6 +23,9 @@ Kinds
     the initial fits): a person standing or walking on the floor keeps the lower of the
     body's lowest rest points (the ankles) at its rest height above z = ``fit.floor_z_m``
     and neither below it — legs whose blobs are missing or mislabelled are not pulled up.
+    Upright head (``fit.upright_head_sigma_m``, :meth:`UprightSegment.link_axis`, also in the
+    initial fits and the kinematic filters' outlier fit): the head's blob (the face) sits a few
+    cm from the neck pivot and barely observes its pitch, so the head is held near upright.
     Heading cue from the torso's shape (``fit.axis_*``, baseline): the
     3-D second moments that explain the torso's 2-D blob covariances in three or more views
     (``triangulation.blob_extent``) have their widest horizontal axis along the shoulders;
