@@ -399,7 +399,6 @@ def test_startup_holds_its_heading_and_skips_a_two_view_ghost_hand(body, cameras
     assert to_ghost < 0.05 and err > 25, (err, to_ghost)
 
 
-
 def test_an_oversized_skin_blob_sees_a_start_up_point_but_does_not_locate_it(cameras):
     """startup.max_skin_size_m (:func:`match_skin_blobs`): a hand whose blob is merged in two of four
     views with a large skin-coloured region is seen by all four but located by the two hand-sized
@@ -842,7 +841,6 @@ def test_ground_contact_keeps_a_foot_on_the_floor(body):
         lowest[name] = body.joint_positions(theta)[ankles, 2].min() - ground.height.min()
     assert lowest["plain"] > 0.06, lowest
     assert -0.01 < lowest["ground"] < 0.02, lowest
-
 
 
 def test_upright_head_keeps_the_head_over_the_neck(body):

@@ -1381,9 +1381,11 @@ class _Estimator:
         terms = [GroundContact.from_body(body, f.ground_sigma_m, f.floor_z_m)] if f.ground_sigma_m > 0 else []
         if f.upright_sigma_m > 0:
             terms.append(UprightSegment.from_body(body, f.upright_sigma_m))
-        #: the upright head (``fit.upright_head_sigma_m``), also in the kinematic filters' outlier fit
+        #: the upright head (``fit.upright_head_sigma_m``; off for a body model without a 'head' link and
+        #: joint), also in the kinematic filters' outlier fit
+        has_head = "head" in body.link_names and "head" in body.joint_names
         self._upright_head = (UprightSegment.link_axis(body, f.upright_head_sigma_m, "head", "head")
-                              if f.upright_head_sigma_m > 0 else None)
+                              if f.upright_head_sigma_m > 0 and has_head else None)
         if self._upright_head is not None:
             terms.append(self._upright_head)
         #: soft floor contact, upright trunk and head of the body fits, or None
