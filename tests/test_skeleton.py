@@ -416,8 +416,12 @@ def test_an_oversized_skin_blob_sees_a_start_up_point_but_does_not_locate_it(cam
         big = k in (0, 2)
         skin[cam.name] = [blob(cam, hand, 0.25 if big else 0.03, (0.1, 0.0, -0.1) if big else (0.0, 0.0, 0.0)),
                           blob(cam, ghost, 0.03 if k == 1 else 0.25)]
-    assert blob_size_m(cams["cam1"], skin["cam1"][0], hand) == pytest.approx(math.sqrt(4 * math.pi) * 0.03, rel=0.05)
-    assert blob_size_m(cams["cam0"], skin["cam0"][1], ghost) > 0.8
+    def depth(cam, X):
+        return float(cam.project(X[None])[1][0])
+
+    assert blob_size_m(cams["cam1"], skin["cam1"][0], depth(cams["cam1"], hand)) == pytest.approx(
+        math.sqrt(4 * math.pi) * 0.03, rel=0.05)
+    assert blob_size_m(cams["cam0"], skin["cam0"][1], depth(cams["cam0"], ghost)) > 0.8
 
     def points(max_size_m):
         found = match_skin_blobs(skin, cams, 6, max_size_m=max_size_m)

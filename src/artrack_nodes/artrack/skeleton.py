@@ -1204,14 +1204,13 @@ def nearest_person(points: list, xy: np.ndarray, gap_m: float) -> list:
     return [p for p, g in zip(points, group, strict=True) if g == best]
 
 
-def blob_size_m(camera: Camera, blob: Blob2D, point: np.ndarray) -> float:
-    """The physical size (m) a 2-D blob implies at the 3-D ``point`` (world m): the side of the square
-    of its area, as a uniform ellipse of its covariance (area 4π √det C px²), at the point's depth
-    (pinhole scale depth / f)."""
-    _, depth = camera.project(np.asarray(point, float).reshape(1, 3))
+def blob_size_m(camera: Camera, blob: Blob2D, depth_m: float) -> float:
+    """The physical size (m) a 2-D blob implies at ``depth_m`` (m, along the camera's axis): the side of
+    the square of its area, as a uniform ellipse of its covariance (area 4π √det C px²), times the
+    pinhole scale depth / f."""
     det = max(float(np.linalg.det(np.asarray(blob.cov, float).reshape(2, 2))), 0.0)
     f = math.sqrt(float(camera.K[0, 0]) * float(camera.K[1, 1]))
-    return math.sqrt(4.0 * math.pi * math.sqrt(det)) * float(depth[0]) / f
+    return math.sqrt(4.0 * math.pi * math.sqrt(det)) * float(depth_m) / f
 
 
 def match_skin_blobs(
@@ -1241,6 +1240,10 @@ def match_skin_blobs(
     names = sorted(c for c, bl in skin_by_camera.items() if len(bl) and c in cameras)
     if len(names) < 2:
         return []
+
+    def oversized_at(c: str, k: int, depth_m: float) -> bool:
+        return max_size_m > 0 and blob_size_m(cameras[c], skin_by_camera[c][k], depth_m) > max_size_m
+
     rays = {}
     for c in names:
         uv = np.array([np.asarray(b.mean, float) for b in skin_by_camera[c]]).reshape(-1, 2)
@@ -1259,10 +1262,8 @@ def match_skin_blobs(
                 ok = True
                 for c, k in members.items():
                     uv, depth = cameras[c].project(X[None])
-                    if depth[0] <= 0 or not _in_gate(skin_by_camera[c][k], uv[0], gate_sigma, gate_px)[0]:
-                        ok = False
-                        break
-                    if max_size_m > 0 and blob_size_m(cameras[c], skin_by_camera[c][k], X) > max_size_m:
+                    if (depth[0] <= 0 or not _in_gate(skin_by_camera[c][k], uv[0], gate_sigma, gate_px)[0]
+                            or oversized_at(c, k, depth[0])):
                         ok = False
                         break
                 if not ok:
@@ -1277,7 +1278,7 @@ def match_skin_blobs(
                     best = _nearest_in_gate(skin_by_camera[ck], uv[0], gate_sigma, gate_px)
                     if best is None:
                         continue
-                    if max_size_m > 0 and blob_size_m(cameras[ck], skin_by_camera[ck][best], X) > max_size_m:
+                    if oversized_at(ck, best, depth[0]):
                         oversized[ck] = best
                     else:
                         members[ck] = best
