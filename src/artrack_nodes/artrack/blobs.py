@@ -476,8 +476,14 @@ class ColourModel:
         c = np.asarray(colours, _F32).reshape(-1, 3)
         z = c @ A[:, :3].T + A[:, 3]
         d2 = np.einsum("ij,ij->i", z, z)
-        d2[~self.admits(c)] = np.inf
+        if self.has_floors:
+            d2[~self.admits(c)] = np.inf
         return d2
+
+    @property
+    def has_floors(self) -> bool:
+        """Whether ``admits`` can reject a colour (``min_intensity`` or ``min_red_excess`` set)."""
+        return self.min_intensity > 0 or self.min_red_excess > 0
 
     def admits(self, colours: np.ndarray) -> np.ndarray:
         """(N,) bool: the colours (N, 3) that pass ``min_intensity`` and ``min_red_excess``."""
@@ -1059,7 +1065,9 @@ class BlobTracker2D:
                 z = f @ A[:, :3].T + A[:, 3]
                 dc2 = np.einsum("ij,ij->i", z, z)
                 dc2s.append(dc2)
-                ok = (dc2 <= gc2) & m.colour.admits(f)
+                ok = dc2 <= gc2
+                if m.colour.has_floors:
+                    ok &= m.colour.admits(f)
                 log_prior = m.log_confidence - 0.5 * math.log(m.det)
                 const = m.weight * log_prior - 0.5 * logdet_c
                 score = _F32(const) - 0.5 * (dc2 + _F32(m.weight) * ds2)
