@@ -873,6 +873,18 @@ def test_upright_head_keeps_the_head_over_the_neck(body):
     assert err["upright"][1] < err["plain"][1], err
 
 
+def test_upright_link_axis_names_what_the_body_lacks(body):
+    """UprightSegment.link_axis refuses, in one line naming it, a link or joint the body model has
+    not and a joint that is not on the link (the estimator checks for 'head' first; other callers
+    rely on these errors)."""
+    with pytest.raises(InputError, match="needs link 'crest'"):
+        UprightSegment.link_axis(body, 0.03, "crest", "head")
+    with pytest.raises(InputError, match="joint 'crown'"):
+        UprightSegment.link_axis(body, 0.03, "head", "crown")
+    with pytest.raises(InputError, match="joint 'l_wrist' is not on link 'head'"):
+        UprightSegment.link_axis(body, 0.03, "head", "l_wrist")
+
+
 def _noisy_blob_targets(body, rng, pose_sd: float, noise_sd: float):
     """A random pose about the rest pose (pelvis at 0.95 m) and its blob centres as PointTargets,
     each moved by N(0, noise_sd²) per axis, information 1 / (2 cm)²."""
