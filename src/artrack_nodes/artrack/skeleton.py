@@ -34,10 +34,12 @@ Kinds
     Left/right data association (``fit.mirror_groups``, baseline): the two trouser legs share
     one colour class, so where they pass each other the 2-D labels follow the priors and swap;
     each frame the body is fitted again with the l_/r_ blobs of each group exchanged (default:
-    one group, the whole legs) and the fit of lowest (robust) cost wins. The exchanged fit is
-    screened by the group's own dofs alone (``fit_pose(free_dofs=...)``, the rest held at the
-    labelled fit) and fitted in full only when the screen comes within ``fit.mirror_screen_ratio``
-    of the labelled cost; the screen itself is skipped when its start costs more than
+    the whole legs, then the shins alone, which cross below the knees) and the fit of lowest
+    (robust) cost wins. The exchanged fit is screened by the group's own dofs alone
+    (``fit_pose(free_dofs=...)``, the rest held at the labelled fit: for the shins alone the
+    knees, so only a crossing that the present hips explain earns the full fit) and fitted in
+    full only when the screen comes within ``fit.mirror_screen_ratio`` of the labelled cost; the
+    screen itself is skipped when its start costs more than
     ``fit.mirror_prescreen_ratio`` times the labelled fit, and abandoned when after
     ``fit.mirror_screen_abandon_after`` iterations it is still above ``fit.mirror_screen_abandon_ratio``
     times (speed only: of the benches' 30 seeds, one run changed). Before that, per view
@@ -361,7 +363,7 @@ class FitConfig:
     axis_label: str = "torso"
     axis_sigma_rad: float = 0.35
     axis_min_ratio: float = 1.3
-    mirror_groups: list = field(default_factory=lambda: [["thigh", "shin"]])
+    mirror_groups: list = field(default_factory=lambda: [["thigh", "shin"], ["shin"]])
     mirror_screen_ratio: float = 1.5
     #: the screen itself runs only when the cost of its start (the labelled fit's legs exchanged, no
     #: fit) is below this times the labelled fit's cost (a large value: always)
@@ -2251,7 +2253,8 @@ class BaselineEstimator(_Estimator):
         exchanged (groups whose parts are not seen on both sides are skipped): the other
         data associations of the legs, which the body fit tests against the labelled one.
         Each comes with the dofs that move the exchanged blobs' links and no other observed
-        blob's link (the hips and knees for the legs), and the exchanged labels."""
+        blob's link (the hips and knees for the whole legs, the knees for the shins alone), and
+        the exchanged labels."""
         out = []
         for group in self.cfg.fit.mirror_groups:
             swapped = {side + part for part in group if "l_" + part in obs and "r_" + part in obs
@@ -2311,10 +2314,11 @@ class BaselineEstimator(_Estimator):
             tolerance=f.tolerance,
         )
         for mirrored, free, swapped in self._mirror_hypotheses(obs):
-            # Screen first: the exchanged blobs refitted by their own dofs alone, the rest of the
-            # body held at the labelled fit, from that fit's legs mirrored across the body's
-            # sagittal plane (left in the right's pose and back). Its cost bounds the full
-            # mirrored fit's from above, so only a screen near the labelled cost earns the full fit.
+            # Screen first: the exchanged blobs refitted by their own dofs alone (hips and knees;
+            # the knees for the shins alone), the rest of the body held at the labelled fit, from
+            # that fit's legs mirrored across the body's sagittal plane (left in the right's pose
+            # and back). Its cost bounds the full mirrored fit's from above, so only a screen near
+            # the labelled cost earns the full fit.
             targets_m = self._blob_targets(mirrored) + axis
             prior = (self.kin.rest, self.rest_sigma_dof, self.theta, f.previous_sigma_rad)
             rest = (f.robust_scale, goals, self._ground)
@@ -2878,7 +2882,6 @@ class DynamicEstimator(KinematicEstimator):
             target = centres[b] if fit else blob.mean
             out.append(PointGoal(int(self.kin.blob_links[b]), self.kin.blob_local[b], target, S))
         if fit and d.fit_orientation_stiffness > 0:
-            _, R_fit = self.kin.poses(self.raw.theta)
             out += [OrientationGoal(i, R_fit[i], d.fit_orientation_stiffness) for i in range(self.kin.n_links)]
         return out
 
