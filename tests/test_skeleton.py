@@ -778,10 +778,11 @@ def test_swapped_leg_labels_are_fitted_the_right_way_round(body, cameras):
     # The shins alone exchanged (the thighs labelled right: the trouser legs cross below the knees),
     # thighs 0.5 rad apart: the whole-leg group cannot put them back, the default's [shin] group
     # does. Its screen moves the knees alone, so it recovers only a crossing that the labelled fit's
-    # hips still explain: with this test pose's thighs (0.6 rad apart) or with thighs parallel and
-    # the feet 0.2-0.4 m apart the screen stays above fit.mirror_screen_ratio and the shins stay
-    # crossed (a screen that also moved the hips recovered those, but in the loop it let wrong
-    # exchanges win: default seed 25 29.2 -> 69.8 mm, docs/HISTORY.md stop 50)
+    # hips still explain; this sudden one-frame crossing it recovers here, but not in the four other
+    # poses tried (this test pose's thighs 0.6 rad apart; thighs 0-0.3 rad apart with the feet
+    # 0.19-0.38 m apart): there the screen stays above fit.mirror_screen_ratio and the shins stay
+    # crossed. A screen that also moved the hips recovered those, but in the loop it let wrong
+    # exchanges win (default seed 25 29.2 -> 69.8 mm, docs/HISTORY.md stop 50).
     crossing = theta.copy()
     for name, value in {"l_thigh": [0.0, -0.3, 0.0], "r_thigh": [0.0, 0.2, 0.0]}.items():
         crossing[body.link(name).dof_slice] = value
