@@ -787,8 +787,8 @@ def test_swapped_leg_labels_are_fitted_the_right_way_round(body, cameras):
     for name, value in {"l_thigh": [0.0, -0.3, 0.0], "r_thigh": [0.0, 0.2, 0.0]}.items():
         crossing[body.link(name).dof_slice] = value
     crossing = body.clip(crossing)
-    shins = {c: [Blob2D(swap.get(b.label, b.label) if "shin" in b.label else b.label, b.mean, b.cov,
-                        pixel_count=b.pixel_count) for b in bl]
+    shin_swap = {k: v for k, v in swap.items() if "shin" in k}
+    shins = {c: [dataclasses.replace(b, label=shin_swap.get(b.label, b.label)) for b in bl]
              for c, bl in blobs_2d(body, cameras, crossing).items()}
     err_shins = {}
     for key, groups in (("legs", [["thigh", "shin"]]), ("default", None)):

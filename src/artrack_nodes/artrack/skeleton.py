@@ -2869,9 +2869,10 @@ class DynamicEstimator(KinematicEstimator):
         d = self.cfg.dynamic
         _, fit_d2 = self._outlier_fit(obs, d.outlier_fit_scale)
         fit = d.follow_fit and self._raw_tracking()
-        # the raw tracker's link poses (one forward kinematics for its blob centres and rotations)
-        p_fit, R_fit = self.kin.poses(self.raw.theta) if fit else (None, None)
-        centres = self.kin.blob_points(p_fit, R_fit) if fit else None
+        centres = R_fit = None
+        if fit:  # the raw tracker's link poses: its blob centres and rotations from one forward kinematics
+            p_fit, R_fit = self.kin.poses(self.raw.theta)
+            centres = self.kin.blob_points(p_fit, R_fit)
         out = []
         for lab, blob in obs.items():
             b = self.kin.blob_index[lab]
