@@ -3,8 +3,8 @@ detections from object_features) on a few frames of the synthetic RGB-D stick sc
 
 The test process is an rclpy participant on the private domain of the test run: it publishes
 the depth camera's calibration, point clouds, colour images and the stick pose frame by
-frame (waiting for each frame's bodies), plus a malformed point cloud the tracker must log
-and survive.
+frame (waiting for each frame's bodies; the first stick 1.5 s after its cloud, none for the
+second frame), plus a malformed point cloud the tracker must log and survive.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def test_particle_tracker_and_object_features_over_dds(env, probe, tmp_path):
                                        body=body))
     theta0 = "[" + ",".join(repr(float(x)) for x in frames[0].theta) + "]"
     common = ["-p", "camera_name:=rgbd", "-p", "lockstep:=true", "-p", "n_particles:=120",
-              "-p", f"initial_theta:={theta0}", "-p", "sync_timeout_s:=30.0"]
+              "-p", f"initial_theta:={theta0}"]
     nodes = {
         "tracker3d": [str(NODE_BIN / "particle_tracker"), "--ros-args", *common, "-p", "stick_source:=pose3d",
                       "-p", f"stick_length:={stick_length('stick_side')}", "-p", "prior:=stick3d",
@@ -97,8 +97,11 @@ def test_particle_tracker_and_object_features_over_dds(env, probe, tmp_path):
             all_logs()
         for k, fr in enumerate(frames[1:], start=1):
             img_pub.publish(image_msg(f, fr.image, fr.stamp_ns, cam.frame_id))
-            stick_pub.publish(stick_pose_msg(f, fr.stick[0], fr.stick[1], fr.stamp_ns, "world"))
             pts_pub.publish(pointcloud_msg(f, fr.points_cam, fr.stamp_ns, cam.frame_id))
+            if k == 1:  # the first stick comes late (a publisher discovered after the clouds')
+                spin_until(executor, lambda: False, 1.5)
+            if k != 2:  # frame 2 has no stick: the tracker goes on without it
+                stick_pub.publish(stick_pose_msg(f, fr.stick[0], fr.stick[1], fr.stamp_ns, "world"))
             assert spin_until(executor, lambda k=k: len(bodies3d) >= k and len(bodies2d) >= k, 120), \
                 f"no bodies for frame {k}:\n{all_logs()}"
         for k, p in procs.items():
@@ -133,6 +136,11 @@ def test_particle_tracker_and_object_features_over_dds(env, probe, tmp_path):
         assert abs((np.asarray(s.a) - uv[0]) @ n) < 3.0 and abs((np.asarray(s.b) - uv[0]) @ n) < 3.0
     text = all_logs()
     assert "'z'" in text and "Traceback" not in text
+    # lockstep: the first stick is waited for beyond sync_timeout_s (0.5 s); a missing one is logged
+    tracker3d = logs["tracker3d"].read_text()
+    assert f"frame {frames[1].stamp_ns}: no stick" not in tracker3d, tracker3d
+    assert f"frame {frames[2].stamp_ns}: no stick" in tracker3d, tracker3d
+    assert "no stick" not in logs["tracker2d"].read_text()
 
 
 def test_particle_tracker_beside_the_skeleton_in_the_launched_graph(env, tmp_path):

@@ -6,8 +6,11 @@ optical frame), that camera's camera_info and extrinsics, and the stick: with
 stick_source=pose3d /artrack/stick (geometry_msgs/PoseStamped, world frame, x axis along
 the stick, length = parameter stick_length), with stick_source=detection2d
 /cameras/<camera_name>/stick_2d (artrack_msgs/Stick2D from object_features), or none.
-Each point cloud waits up to sync_timeout_s for its frame's stick (then the stick priors
-fall back to the projected spatial prior). Publishes artrack_msgs/TrackedBody on body_topic
+Each point cloud waits for its frame's stick until it arrives, a later frame's stick arrives
+(the source skipped this frame), or sync_timeout_s passed while the node was idle; then the
+stick priors fall back to the projected spatial prior (logged). In lockstep replay the wait
+before the first stick is first_stick_timeout_s: the stick's publisher can be discovered
+after the clouds'. Publishes artrack_msgs/TrackedBody on body_topic
 (default /artrack/particles/body, so it can run beside the skeleton node, which owns
 /artrack/body). The points are cropped to a box around the person's initial root position.
 """
@@ -57,13 +60,15 @@ PARAMS = [
     ("body_id", 1, "id published in TrackedBody.body_id"),
     ("world_frame", "world", "frame_id of the published bodies"),
     ("fps", 15.0, "nominal frame rate, Hz (stick-to-cloud matching tolerance is half a frame)"),
-    ("sync_timeout_s", 0.5, "a point cloud waits this long for its frame's stick, s"),
+    ("sync_timeout_s", 0.5, "a point cloud waits this long for its frame's stick (time spent processing "
+                            "other clouds not counted), s"),
+    ("first_stick_timeout_s", 10.0, "lockstep: until the first stick arrived a point cloud waits this long, s"),
     ("lockstep", False, "bag replay: reliable point clouds, every one kept until processed"),
     ("particle_config", "", "ParticleConfig YAML (empty: config/particle_tracker.yaml)"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
 ]
 LIMITS = {"stick_length": (0.1, 10.0), "n_particles": (0, 100000), "fps": (1.0, 1000.0),
-          "sync_timeout_s": (0.0, 3600.0)}
+          "sync_timeout_s": (0.0, 3600.0), "first_stick_timeout_s": (0.0, 3600.0)}
 RUNTIME: tuple[str, ...] = ()  # all read-only once running
 
 
@@ -162,16 +167,32 @@ class ParticleTrackerNode(Node):
         return False, None
 
     def flush(self) -> None:
-        if self.camera is None:
+        """Process the oldest point cloud once its frame's stick is known: arrived, or missing (a
+        later stick arrived, or the wait timed out). One cloud per call, so that the sticks queued
+        while it was processed are taken before the next; that busy time is not counted as the
+        remaining clouds' wait (they could not have received their sticks during it)."""
+        if self.camera is None or not self.clouds:
             return
-        while self.clouds:
-            stamp = min(self.clouds)
-            pts, arrived = self.clouds[stamp]
-            found, stick = (True, None) if self.source == "none" else self._stick_for(stamp)
-            if not found and time.monotonic() - arrived < float(self.p["sync_timeout_s"]):
-                return
-            del self.clouds[stamp]
-            self.process(stamp, pts, stick)
+        stamp = min(self.clouds)
+        pts, arrived = self.clouds[stamp]
+        stick = None
+        if self.source != "none":
+            found, stick = self._stick_for(stamp)
+            if not found:
+                later = bool(self.sticks) and max(self.sticks) > stamp + self.tol_ns
+                timeout = float(self.p["sync_timeout_s"])
+                if self.p["lockstep"] and not self.sticks:
+                    timeout = max(timeout, float(self.p["first_stick_timeout_s"]))
+                if not later and time.monotonic() - arrived < timeout:
+                    return
+                why = "a later frame's stick arrived" if later else f"none within {timeout:g} s"
+                self.get_logger().warning(f"frame {stamp}: no stick ({why}); stick priors fall back to "
+                                          "the spatial prior")
+        del self.clouds[stamp]
+        t0 = time.monotonic()
+        self.process(stamp, pts, stick)
+        busy = time.monotonic() - t0
+        self.clouds = {s: (p, a + busy) for s, (p, a) in self.clouds.items()}
 
     def process(self, stamp: int, points_cam: np.ndarray, stick) -> None:
         cam = self.camera
