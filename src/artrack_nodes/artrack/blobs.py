@@ -110,7 +110,12 @@ triangulates them and re-acquires the hand (``skeleton`` ``tracking.reacquire_*`
 The opposite failure, a skin label spread over more skin than its part (the other hand,
 the face): a label of the skin class whose pixels outnumber ``max_prior_area_ratio``
 times its projected 3-D prior's 2-sigma ellipse area is not reported, and its pixels
-come back among those unlabelled skin components.
+come back among those unlabelled skin components. Nor is a skin label nearly all of
+whose pixels (``foreign_colour_share``) are likelier under another colour class labelled
+in the view: a hand gone behind the body leaves its label on clothing of a skin-like
+colour (khaki trousers), which the small prior's spatial term holds against the
+trousers' better colour. (Only nearly all: a shaded hand's own pixels are often
+likelier khaki too, and a half-hidden hand must keep its label.)
 
 Weak points: a person standing still through the whole seed is background
 until they move (the ghost they leave then heals within about
@@ -281,6 +286,13 @@ class BlobTrackerConfig:
     #: while tracking, a skin label with more pixels than this many times the area of its projected
     #: 3-D prior's 2-sigma ellipse (4π√det S) is not reported (0 = never; BlobTracker2D._oversized)
     max_prior_area_ratio: float = 1.0
+    #: while tracking, a skin label more than this share of whose pixels are better explained by the
+    #: colour model of another colour class labelled in this view (Mahalanobis distance and log|Σ|)
+    #: is not reported: its part has gone from view and the label sits on clothing of a skin-like
+    #: colour, e.g. a hand behind the back leaving its label on khaki trousers (0 = never;
+    #: BlobTracker2D._foreign_coloured). Nearly all: the shaded pixels of a hand half in view are
+    #: often likelier khaki too (0.5 and 0.8 dropped such hands: docs/HISTORY.md, stop 51)
+    foreign_colour_share: float = 0.9
     #: a label's 8-connected pieces smaller than this fraction of its largest piece are dropped (0 = keep all)
     min_component_fraction: float = 0.1
     #: while tracking, only foreground 8-connected to the pixels labelled with this label (e.g. 'torso':
@@ -340,7 +352,8 @@ class BlobTrackerConfig:
         v = self.min_blob_pixels_width
         if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise bad("min_blob_pixels_width", "must be a non-negative number")
-        for name in ("background_learning_rate", "background_ghost_rate", "colour_learning_rate"):
+        for name in ("background_learning_rate", "background_ghost_rate", "colour_learning_rate",
+                     "foreign_colour_share"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0:
                 raise bad(name, "must be in [0, 1]")
@@ -1080,6 +1093,7 @@ class BlobTracker2D:
             t1 = time.perf_counter()
             min_px = self._min_pixels()
             core2, learn2 = cfg.colour_core_sigma**2, cfg.colour_learn_gate**2
+            frame_classes = sorted({self.colour_classes[self.labels[m.index]] for m in models})
             for m, sel, ds2, dc2 in zip(models, sels, ds2s, dc2s):
                 pos = np.flatnonzero(lab[sel] == m.index)  # positions in sel
                 n = pos.size
@@ -1091,7 +1105,8 @@ class BlobTracker2D:
                     if kept < n:
                         pos = pos[support[ys[sel[pos]], xs[sel[pos]]] == m.index]
                         n = pos.size
-                if n < min_px or self._oversized(m, n):
+                if n < min_px or self._oversized(m, n) or self._foreign_coloured(m, feat[sel[pos]], dc2[pos],
+                                                                                  frame_classes):
                     support[ys[sel[pos]], xs[sel[pos]]] = -1
                     continue
                 pts = np.stack([xs[sel[pos]], ys[sel[pos]]], axis=1).astype(float)
@@ -1136,6 +1151,33 @@ class BlobTracker2D:
         r = self.config.max_prior_area_ratio
         return (r > 0 and m.from_prior and self.colour_classes[self.labels[m.index]] == SKIN
                 and n > r * 4.0 * math.pi * math.sqrt(m.det))
+
+    def _foreign_coloured(self, m: _ClassModel, colours: np.ndarray, dc2: np.ndarray,
+                          frame_classes: list[str]) -> bool:
+        """A skin label (from a projected 3-D prior) of whose pixels (colour features ``colours``
+        (n, 3), squared Mahalanobis distances ``dc2`` (n,) to its own model) more than
+        ``foreign_colour_share`` are more likely under the colour model of another class of
+        ``frame_classes`` (-½ (d² + log|Σ|)) sits on that class's pixels, not on its part:
+        khaki trousers pass the skin gate, and a hand gone behind the body leaves its label
+        on them (ALGORITHMS.md §1: the MAP's spatial term of a small blob outweighs a
+        moderately worse colour). Not reported; its pixels stay unlabelled."""
+        share = self.config.foreign_colour_share
+        own = self.colour_classes[self.labels[m.index]]
+        if share <= 0 or not m.from_prior or own != SKIN or not m.colour.learned or len(frame_classes) < 2:
+            return False  # (an unlearned model is the broad default, which any learned one outscores)
+        cfg = self.config
+        own_score = dc2 + m.colour.whitening(cfg)[1]
+        foreign = np.zeros(colours.shape[0], bool)
+        for cls in frame_classes:
+            if cls == own:
+                continue
+            other = self.colour_model(cls)
+            if not other.learned:
+                continue
+            A, logdet = other.whitening(cfg)
+            z = colours @ A[:, :3].T + A[:, 3]
+            foreign |= np.einsum("ij,ij->i", z, z) + logdet < own_score
+        return float(np.count_nonzero(foreign)) > share * colours.shape[0]
 
     def _detached_static_support(self, fg: np.ndarray, labelled: np.ndarray) -> np.ndarray:
         """(H, W) bool: the pixels labelled with one of ``background_ghost_detached`` outside the
