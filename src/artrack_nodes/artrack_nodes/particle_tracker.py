@@ -152,9 +152,13 @@ class ParticleTrackerNode(Node):
         self._add_stick(ns_from_time(msg.header.stamp), (a, b))
 
     def _add_stick(self, stamp: int, stick) -> None:
+        """Keep the stick; forget the sticks beyond the newest 50 that no waiting cloud can use
+        (a tracker slower than the replay may be far behind its sticks)."""
         self.sticks[stamp] = stick
+        needed_from = min(self.clouds) - self.tol_ns if self.clouds else stamp
         for old in sorted(self.sticks)[:-50]:
-            del self.sticks[old]
+            if old < needed_from:
+                del self.sticks[old]
         self.flush()
 
     def _stick_for(self, stamp: int):
