@@ -3,7 +3,7 @@ detections from object_features) on a few frames of the synthetic RGB-D stick sc
 
 The test process is an rclpy participant on the private domain of the test run: it publishes
 the depth camera's calibration, point clouds, colour images and the stick pose frame by
-frame (waiting for each frame's bodies; the first stick 1.5 s after its cloud, none for the
+frame (waiting for each frame's bodies; the first stick 4 s after its cloud, none for the
 second frame), plus a malformed point cloud the tracker must log and survive.
 """
 
@@ -46,12 +46,16 @@ def test_particle_tracker_and_object_features_over_dds(env, probe, tmp_path):
     theta0 = "[" + ",".join(repr(float(x)) for x in frames[0].theta) + "]"
     common = ["-p", "camera_name:=rgbd", "-p", "lockstep:=true", "-p", "n_particles:=120",
               "-p", f"initial_theta:={theta0}"]
+    # tracker3d: the first stick comes 4 s after its cloud, beyond sync_timeout_s (3 s, long enough
+    # for a loaded machine's delivery), within first_stick_timeout_s (10 s); tracker2d 30 s (for the detections)
     nodes = {
         "tracker3d": [str(NODE_BIN / "particle_tracker"), "--ros-args", *common, "-p", "stick_source:=pose3d",
+                      "-p", "sync_timeout_s:=3.0",
                       "-p", f"stick_length:={stick_length('stick_side')}", "-p", "prior:=stick3d",
                       "-r", "__node:=tracker3d"],
         "tracker2d": [str(NODE_BIN / "particle_tracker"), "--ros-args", *common, "-p", "stick_source:=detection2d",
                       "-p", "prior:=stick2d", "-p", "body_topic:=/artrack/particles2d/body",
+                      "-p", "sync_timeout_s:=30.0",
                       "-r", "__node:=tracker2d"],
         "objects": [str(NODE_BIN / "object_features"), "--ros-args", "-p", "camera_name:=rgbd",
                     "-p", "lockstep:=true"],
@@ -99,7 +103,7 @@ def test_particle_tracker_and_object_features_over_dds(env, probe, tmp_path):
             img_pub.publish(image_msg(f, fr.image, fr.stamp_ns, cam.frame_id))
             pts_pub.publish(pointcloud_msg(f, fr.points_cam, fr.stamp_ns, cam.frame_id))
             if k == 1:  # the first stick comes late (a publisher discovered after the clouds')
-                spin_until(executor, lambda: False, 1.5)
+                spin_until(executor, lambda: False, 4.0)
             if k != 2:  # frame 2 has no stick: the tracker goes on without it
                 stick_pub.publish(stick_pose_msg(f, fr.stick[0], fr.stick[1], fr.stamp_ns, "world"))
             assert spin_until(executor, lambda k=k: len(bodies3d) >= k and len(bodies2d) >= k, 120), \
@@ -136,7 +140,7 @@ def test_particle_tracker_and_object_features_over_dds(env, probe, tmp_path):
         assert abs((np.asarray(s.a) - uv[0]) @ n) < 3.0 and abs((np.asarray(s.b) - uv[0]) @ n) < 3.0
     text = all_logs()
     assert "'z'" in text and "Traceback" not in text
-    # lockstep: the first stick is waited for beyond sync_timeout_s (0.5 s); a missing one is logged
+    # lockstep: the first stick is waited for beyond sync_timeout_s; a missing one is logged
     tracker3d = logs["tracker3d"].read_text()
     assert f"frame {frames[1].stamp_ns}: no stick" not in tracker3d, tracker3d
     assert f"frame {frames[2].stamp_ns}: no stick" in tracker3d, tracker3d
