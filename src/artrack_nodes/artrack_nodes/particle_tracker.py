@@ -9,8 +9,9 @@ the stick, length = parameter stick_length), with stick_source=detection2d
 Each point cloud waits for its frame's stick until it arrives, a later frame's stick arrives
 (the source skipped this frame), or sync_timeout_s passed while the node was idle; then the
 stick priors fall back to the projected spatial prior (logged). In lockstep replay the wait
-before the first stick is first_stick_timeout_s: the stick's publisher can be discovered
-after the clouds'. Publishes artrack_msgs/TrackedBody on body_topic
+before the first stick is first_stick_timeout_s (once: a replay without sticks then goes on
+at sync_timeout_s a frame): the stick's publisher can be discovered after the clouds'.
+Publishes artrack_msgs/TrackedBody on body_topic
 (default /artrack/particles/body, so it can run beside the skeleton node, which owns
 /artrack/body). The points are cropped to a box around the person's initial root position.
 """
@@ -62,7 +63,8 @@ PARAMS = [
     ("fps", 15.0, "nominal frame rate, Hz (stick-to-cloud matching tolerance is half a frame)"),
     ("sync_timeout_s", 0.5, "a point cloud waits this long for its frame's stick (time spent processing "
                             "other clouds not counted), s"),
-    ("first_stick_timeout_s", 10.0, "lockstep: until the first stick arrived a point cloud waits this long, s"),
+    ("first_stick_timeout_s", 10.0, "lockstep: before any stick arrived, a point cloud waits this long for one "
+                                    "(once), s"),
     ("lockstep", False, "bag replay: reliable point clouds, every one kept until processed"),
     ("particle_config", "", "ParticleConfig YAML (empty: config/particle_tracker.yaml)"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
@@ -106,6 +108,7 @@ class ParticleTrackerNode(Node):
         self.tol_ns = int(0.5e9 / float(p["fps"]))
         self.clouds: dict[int, tuple[np.ndarray, float]] = {}
         self.sticks: dict[int, object] = {}  # the stick source keeps a deep history too (RESULT_QOS)
+        self.first_stick_waited = False  # a cloud waited first_stick_timeout_s in vain (no stick source?)
         f = msgs()
         self.pub = self.create_publisher(f.cls("artrack_msgs/msg/TrackedBody"), p["body_topic"], RESULT_QOS)
         self.rig = CameraRigListener(self, [self.camera_name], self.on_cameras)
@@ -185,10 +188,11 @@ class ParticleTrackerNode(Node):
             if not found:
                 later = bool(self.sticks) and max(self.sticks) > stamp + self.tol_ns
                 timeout = float(self.p["sync_timeout_s"])
-                if self.p["lockstep"] and not self.sticks:
+                if self.p["lockstep"] and not self.sticks and not self.first_stick_waited:
                     timeout = max(timeout, float(self.p["first_stick_timeout_s"]))
                 if not later and time.monotonic() - arrived < timeout:
                     return
+                self.first_stick_waited = self.first_stick_waited or not self.sticks  # once, not every frame
                 why = "a later frame's stick arrived" if later else f"none within {timeout:g} s"
                 self.get_logger().warning(f"frame {stamp}: no stick ({why}); stick priors fall back to "
                                           "the spatial prior")
