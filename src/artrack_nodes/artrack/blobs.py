@@ -1172,11 +1172,8 @@ class BlobTracker2D:
             if cls == own:
                 continue
             other = self.colour_model(cls)
-            if not other.learned:
-                continue
-            A, logdet = other.whitening(cfg)
-            z = colours @ A[:, :3].T + A[:, 3]
-            foreign |= np.einsum("ij,ij->i", z, z) + logdet < own_score
+            if other.learned:
+                foreign |= other.distance2(colours, cfg) + other.whitening(cfg)[1] < own_score
         return float(np.count_nonzero(foreign)) > share * colours.shape[0]
 
     def _detached_static_support(self, fg: np.ndarray, labelled: np.ndarray) -> np.ndarray:
