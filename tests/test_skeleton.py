@@ -35,7 +35,7 @@ from artrack.skeleton import (
     match_skin_blobs,
 )
 from artrack.triangulation import associate_views, triangulate_blobs
-from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING, Blob2D
+from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING, Blob2D, Blob3D
 
 FPS = 30.0
 
@@ -694,6 +694,56 @@ def test_a_sliver_is_left_out_where_two_views_see_the_part_whole(body, cameras):
     # off
     off = make_estimator("baseline", body, cameras, {"measurement": {"min_view_fraction": 0.0}})
     assert "r_hand" in labels(off._drop_small_views(sliver), "cam0")
+
+
+def test_a_straight_arm_reaches_a_blob_that_needs_its_elbow_bent(body, cameras):
+    """``BaselineEstimator._reach_for`` (a re-acquired hand's own dofs fitted to its new blob): from a
+    straight arm, the elbow on its hinge limit, a plain fit cannot bend it toward a blob nearer the
+    shoulder (occlusion seed 4, stop 52: the wrist held 170-300 mm off for 12 frames while the hand's
+    3-D blob was right); started again with the elbow half bent, it reaches the blob."""
+    est = make_estimator("baseline", body, cameras, None)
+    names = list(body.dof_names)
+    arm = [i for i, n in enumerate(names) if n.startswith(("r_upper_arm.", "r_forearm.", "r_hand."))]
+    rest = pose_at("default", 0.0, body).copy()
+    rest[arm] = 0.0  # the arm hanging straight
+    bent = rest.copy()
+    bent[[names.index("r_upper_arm.rz"), names.index("r_forearm.hinge")]] = np.radians(90.0)  # turned, bent
+    b = list(body.blob_labels).index("r_hand")
+    target = body.blob_centres(bent)[b]
+    obs = {"r_hand": Blob3D("r_hand", target, np.eye(3) * 0.02**2, ("cam0", "cam1"))}
+    f = est.cfg.fit
+    plain, _, _ = fit_pose(body, rest, est._blob_targets(obs), est.kin.rest, est.rest_sigma_dof, rest,
+                           f.previous_sigma_rad, f.max_nfev, 0.0, tolerance=f.tolerance,
+                           free_dofs=est._own_dofs(["r_hand"], obs))
+    assert np.linalg.norm(body.blob_centres(plain)[b] - target) > 0.3  # stuck straight
+    reached = est._reach_for(["r_hand"], obs, rest)
+    assert np.linalg.norm(body.blob_centres(reached)[b] - target) < 0.01
+    assert reached[names.index("r_forearm.hinge")] > np.radians(45.0)
+    assert np.array_equal(reached[:6], rest[:6])  # its own dofs only
+
+def test_a_sliver_is_kept_where_the_whole_views_face_each_other(body, cameras):
+    """``measurement.min_view_ray_angle_deg``: the views that see a part whole must fix its depth
+    (two of their rays at least that far from parallel and anti-parallel) before its sliver elsewhere
+    is left out. cam1 and cam3 face each other across the person; cam1 and cam2 see it at 90°."""
+    strict = make_estimator("baseline", body, cameras, {"measurement": {"min_view_ray_angle_deg": 45.0}})
+    any_two = make_estimator("baseline", body, cameras, {"measurement": {"min_view_ray_angle_deg": 0.0}})
+    least = strict.cfg.measurement.min_view_fraction * cameras[0].width * cameras[0].height
+    blobs = blobs_2d(body, cameras, pose_at("default", 0.0, body))
+    blobs["cam0"] = [dataclasses.replace(b, pixel_count=int(least) - 1) if b.label == "r_hand" else b
+                     for b in blobs["cam0"]]
+
+    def without_r_hand(cam):
+        return {c: [b for b in bl if not (b.label == "r_hand" and c == cam)] for c, bl in blobs.items()}
+
+    def sliver_kept(est, blobs):
+        return "r_hand" in [b.label for b in est._drop_small_views(blobs)["cam0"]]
+
+    facing = without_r_hand("cam2")  # seen whole by cam1 and cam3 only
+    across = without_r_hand("cam3")  # by cam1 and cam2
+    assert sliver_kept(strict, facing) and not sliver_kept(any_two, facing)
+    assert not sliver_kept(strict, across) and not sliver_kept(any_two, across)
+    with pytest.raises(InputError, match="min_view_ray_angle_deg"):
+        load_skeleton_config({"measurement": {"min_view_ray_angle_deg": 95.0}})
 
 
 def test_baseline_fit_is_robust_to_one_mislabelled_blob(body, cameras):

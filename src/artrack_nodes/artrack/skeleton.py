@@ -270,6 +270,9 @@ class MeasurementConfig:
     min_view_fraction: float = 1.953125e-4
     #: the blob labels ``min_view_fraction`` applies to
     min_view_labels: list = field(default_factory=lambda: ["head", "l_hand", "r_hand"])
+    #: the views that see a part whole drop its slivers only if two of their rays meet at least this
+    #: far (degrees) from parallel and from anti-parallel (:func:`artrack.triangulation.drop_slivers`; 0: any two)
+    min_view_ray_angle_deg: float = 45.0
     #: a 3-D blob seen by one view only takes its depth along that view's ray from the prior it was
     #: triangulated with (the prediction); the body fits count it across the ray only, and this sigma
     #: (m) along it (:meth:`_Estimator._blob_targets`); 0 = as triangulated (the prediction's depth)
@@ -312,6 +315,9 @@ class TrackingConfig:
     reacquire_separation_m: float = 0.15
     #: ... and within this many times the part's reach (the bone chain from its shoulder) of its shoulder
     reacquire_reach_margin: float = 1.1
+    #: a re-acquired part's own dofs are fitted from the arm as it is and also with its hinges half
+    #: bent (:meth:`BaselineEstimator._reach_for`); False: from the arm as it is only
+    reacquire_bent_start: bool = True
     #: a 3-D blob of ``reacquire_labels`` triangulated (two or more views) farther than this many times the part's reach
     #: from its shoulder in the current pose is not used (the hand's label sits on something else:
     #: another person's face), and the part may be re-acquired; 0 = never
@@ -596,6 +602,8 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'measurement.view_outlier_chi2' must be >= 0 (0 = off)")
     if not out.measurement.min_view_fraction >= 0:
         raise InputError("skeleton config: field 'measurement.min_view_fraction' must be >= 0 (0 = off)")
+    if not 0.0 <= out.measurement.min_view_ray_angle_deg <= 90.0:
+        raise InputError("skeleton config: field 'measurement.min_view_ray_angle_deg' must be in [0, 90] degrees")
     if not isinstance(out.measurement.min_view_labels, list) or not all(
             isinstance(p, str) and p for p in out.measurement.min_view_labels):
         raise InputError("skeleton config: field 'measurement.min_view_labels' must be a list of blob labels")
@@ -1620,7 +1628,7 @@ class _Estimator:
         """{camera: 2-D blobs} without the head's and hands' slivers (``measurement.min_view_fraction``,
         ``min_view_labels``; :func:`artrack.triangulation.drop_slivers`)."""
         m = self.cfg.measurement
-        return drop_slivers(labelled, self.cameras, m.min_view_labels, m.min_view_fraction)
+        return drop_slivers(labelled, self.cameras, m.min_view_labels, m.min_view_fraction, m.min_view_ray_angle_deg)
 
     def _triangulate_labelled(self, labelled: dict[str, list[Blob2D]],
                               priors: Mapping[str, Blob3D] | None) -> dict[str, Blob3D]:
@@ -2277,15 +2285,29 @@ class BaselineEstimator(_Estimator):
     def _reach_for(self, labels, obs: Mapping[str, Blob3D], theta: np.ndarray) -> np.ndarray:
         """``theta`` with the parts ``labels`` (just re-acquired, :meth:`_reacquire`) moved onto their
         new blobs by their own dofs alone (plain least squares, the rest of the body held): from the
-        old pose, far off, the robust fit would take the new blob for an outlier."""
+        old pose, far off, the robust fit would take the new blob for an outlier. Fitted from the arm
+        as it is and again (``tracking.reacquire_bent_start``) with its hinges (the elbow; dof names
+        ending '.hinge') half bent, the lower cost kept: from a straight arm, the elbow on its limit,
+        the fit cannot bend it toward a blob nearer the shoulder (the first-order step points off the
+        limit)."""
         f = self.cfg.fit
         free = self._own_dofs(labels, obs)
         if not free.size:
             return theta
-        theta, _, _ = fit_pose(self.body, theta, self._blob_targets({k: obs[k] for k in labels}), self.kin.rest,
-                               self.rest_sigma_dof, theta, f.previous_sigma_rad, f.max_nfev, 0.0,
-                               tolerance=f.tolerance, free_dofs=free)
-        return theta
+        targets = self._blob_targets({k: obs[k] for k in labels})
+        hinges = free[[self.body.dof_names[i].endswith(".hinge") for i in free]]
+        starts = [theta]
+        if hinges.size and self.cfg.tracking.reacquire_bent_start:
+            bent = theta.copy()
+            bent[hinges] = 0.5 * (self.body.lower[hinges] + self.body.upper[hinges])
+            starts.append(bent)
+        best, best_cost = theta, np.inf
+        for start in starts:
+            fitted, cost, _ = fit_pose(self.body, start, targets, self.kin.rest, self.rest_sigma_dof, theta,
+                                       f.previous_sigma_rad, f.max_nfev, 0.0, tolerance=f.tolerance, free_dofs=free)
+            if cost < best_cost:
+                best, best_cost = fitted, cost
+        return best
 
     def _step(self, stamp_ns, obs):
         f = self.cfg.fit

@@ -469,6 +469,7 @@ def drop_slivers(
     cameras: Mapping[str, Camera],
     labels: Iterable[str],
     min_fraction: float,
+    min_ray_angle_deg: float = 0.0,
 ) -> dict[str, list[Blob2D]]:
     """Leave a sliver of a part out of the views where two or more other views see it whole.
 
@@ -478,8 +479,13 @@ def drop_slivers(
     by ``small_blob_fraction`` (:func:`triangulate_blobs`) it counts about twice as much as a whole
     hand elsewhere, and on the wrong thing it pulls the 3-D blob, and with it the next priors,
     along its ray. It is dropped where two or more other views see the part with at least that
-    many pixels; with fewer it is kept (a ray still helps). This project's addition to the 3-D
-    blobs of ALGORITHMS.md §1; ``min_fraction`` <= 0: nothing is dropped.
+    many pixels; with fewer it is kept (a ray still helps). ``min_ray_angle_deg`` > 0: those views
+    must also fix the point, two of their rays (through the blobs' means) meeting at least that
+    far from parallel and from anti-parallel; two cameras facing each other see along nearly one
+    line, their depth is barely measured, and a wrong label in one of them (the other hand, close
+    by in its image) then puts the 3-D blob far off along it while the slivers would have caught
+    it. This project's addition to the 3-D blobs of ALGORITHMS.md §1; ``min_fraction`` <= 0:
+    nothing is dropped.
 
     Returns blobs_by_camera without the slivers.
     """
@@ -488,12 +494,23 @@ def drop_slivers(
     if min_fraction <= 0 or not applies:
         return out
     least = {c: min_fraction * cameras[c].width * cameras[c].height for c in out}
-    seen_whole: dict[str, int] = {}  # label -> views whose blob of it has at least `least` pixels
+    whole: dict[str, list[tuple[str, Blob2D]]] = {}  # label -> (camera, blob) of the views that see it whole
     for c, blobs in out.items():
-        for label in {b.label for b in blobs if b.pixel_count >= least[c]}:
-            seen_whole[label] = seen_whole.get(label, 0) + 1
+        for label, b in {b.label: b for b in blobs if b.pixel_count >= least[c]}.items():
+            whole.setdefault(label, []).append((c, b))
+    max_cos = np.cos(np.radians(min_ray_angle_deg))
+    fixed = set()  # labels whose whole views fix the point
+    for label, views in whole.items():
+        if len(views) < 2:
+            continue
+        if min_ray_angle_deg > 0:
+            d = np.array([cameras[c].rays(np.asarray(b.mean, float).reshape(1, 2))[1][0]
+                          for c, b in views if _finite(b)]).reshape(-1, 3)
+            if not np.any(np.abs(d @ d.T)[np.triu_indices(len(d), 1)] <= max_cos):
+                continue
+        fixed.add(label)
     return {c: [b for b in blobs if b.label not in applies or b.pixel_count >= least[c]
-                or seen_whole.get(b.label, 0) < 2] for c, blobs in out.items()}
+                or b.label not in fixed] for c, blobs in out.items()}
 
 
 def associate_views(
