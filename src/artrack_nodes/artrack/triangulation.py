@@ -496,7 +496,7 @@ def drop_slivers(
     least = {c: min_fraction * cameras[c].width * cameras[c].height for c in out}
     whole: dict[str, list[tuple[str, Blob2D]]] = {}  # label -> (camera, blob) of the views that see it whole
     for c, blobs in out.items():
-        for label, b in {b.label: b for b in blobs if b.pixel_count >= least[c]}.items():
+        for label, b in {b.label: b for b in blobs if b.label in applies and b.pixel_count >= least[c]}.items():
             whole.setdefault(label, []).append((c, b))
     max_cos = np.cos(np.radians(min_ray_angle_deg))
     fixed = set()  # labels whose whole views fix the point
