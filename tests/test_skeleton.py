@@ -869,6 +869,40 @@ def test_swapped_leg_labels_are_fitted_the_right_way_round(body, cameras):
         make_estimator("baseline", body, cameras, {"fit": {"overlap_chi2": -1.0}})
 
 
+
+def test_a_leg_exchange_is_screened_by_the_knees_when_the_feet_carry_blobs(cameras):
+    """fit.mirror_groups with a body whose feet carry blobs (config/pose2sim_body_model.yaml): the
+    knees also move the foot blobs, which the exchange leaves labelled as they are, so before stop
+    53 the [shin] hypothesis had no dofs of its own and went to the full fit every frame without a
+    screen (on the make-demo recording three of the frame's four fits, none of them winning). The
+    screen now moves the knees (the feet below them in its cost): shins exchanged in every view are
+    still put back, and the pre-screen gates the hypothesis (with fit.mirror_prescreen_ratio 0 the
+    fit is the one without the exchange, as for the default body)."""
+    feet = load_body_model(config_dir() / "pose2sim_body_model.yaml")
+    assert {"l_foot", "r_foot"} <= set(feet.blob_labels)
+    theta = _test_pose(feet)
+    for name, value in {"l_thigh": [0.0, -0.3, 0.0], "r_thigh": [0.0, 0.2, 0.0]}.items():
+        theta[feet.dof_slice(name)] = value
+    theta = feet.clip(theta)
+    shin_swap = {"l_shin": "r_shin", "r_shin": "l_shin"}
+    shins = {c: [dataclasses.replace(b, label=shin_swap.get(b.label, b.label)) for b in bl]
+             for c, bl in blobs_2d(feet, cameras, theta).items()}
+    legs = [feet.joint_names.index(j) for j in ("l_knee", "r_knee", "l_ankle", "r_ankle")]
+    err, screens = {}, {}
+    for key, fit in (("default", {}), ("off", {"mirror_groups": []}), ("no screen", {"mirror_prescreen_ratio": 0.0})):
+        est = make_estimator("baseline", feet, cameras, {"fit": {**fit, "overlap_parts": []}})
+        est.update(stamp(0), blobs_2d(feet, cameras, theta))
+        e = est.update(stamp(1), shins)
+        err[key] = float(np.linalg.norm(e.joints[legs] - feet.joint_positions(theta)[legs], axis=1).mean())
+        obs = {label: Blob3D(label, np.zeros(3), np.eye(3)) for label in feet.blob_labels}
+        screens[key] = [sorted(feet.dof_names[d] for d in free) for _, free, _ in est._mirror_hypotheses(obs)]
+    assert screens["default"][1] == ["l_shin.hinge", "r_shin.hinge"], screens
+    assert screens["default"][0] and all(n.split(".")[0] in ("l_thigh", "r_thigh", "l_shin", "r_shin")
+                                         for n in screens["default"][0]), screens
+    assert err["default"] < 0.03, err
+    assert err["off"] > 3 * err["default"], err
+    assert err["no screen"] == err["off"], err
+
 def test_overlapping_leg_blobs_are_left_out_of_that_view(body, cameras):
     """fit.overlap_parts: a view whose two shin blobs sit on each other (the legs passing)
     gives neither shin to the triangulation; the other views still place both shins (3 cm). Off

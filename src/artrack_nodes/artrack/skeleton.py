@@ -37,7 +37,8 @@ Kinds
     the whole legs, then the shins alone, which cross below the knees) and the fit of lowest
     (robust) cost wins. The exchanged fit is screened by the group's own dofs alone
     (``fit_pose(free_dofs=...)``, the rest held at the labelled fit: for the shins alone the
-    knees, so only a crossing that the present hips explain earns the full fit) and fitted in
+    knees, so only a crossing that the present hips explain earns the full fit; blobs on links
+    below the group's, a model's feet, move with it in the screen) and fitted in
     full only when the screen comes within ``fit.mirror_screen_ratio`` of the labelled cost; the
     screen itself is skipped when its start costs more than
     ``fit.mirror_prescreen_ratio`` times the labelled fit, and abandoned when after
@@ -2269,18 +2270,29 @@ class BaselineEstimator(_Estimator):
                        for side in ("l_", "r_")}
             if swapped:  # each label takes its mirror's blob (the labels keep obs' order)
                 source = {k: obs[_mirror_label(k)] if k in swapped else obs[k] for k in obs}
-                free = self._own_dofs(swapped, obs)
+                free = self._own_dofs(swapped, obs, carry_below=True)
                 out.append(({k: dataclasses.replace(b, label=k) for k, b in source.items()}, free, swapped))
         return out
 
-    def _own_dofs(self, labels, obs: Mapping[str, Blob3D]) -> np.ndarray:
+    def _own_dofs(self, labels, obs: Mapping[str, Blob3D], carry_below: bool = False) -> np.ndarray:
         """The dofs that move the links of the blobs ``labels`` and no other observed blob's link
-        (nor the root): for the legs the hips and knees, for a hand its shoulder, elbow and wrist."""
+        (nor the root): for the legs the hips and knees, for a hand its shoulder, elbow and wrist.
+        carry_below: other blobs on links below ``labels``' links may move too (a model's foot
+        blobs, carried by the knees: for a fit whose cost counts their residuals as well)."""
         moves = self.body.dof_moves_link
         link = {k: int(self.kin.blob_links[self.kin.blob_index[k]]) for k in set(obs) | set(labels)}
         own = moves[[link[k] for k in labels]].any(axis=0)
-        others = moves[[link[k] for k in obs if k not in labels] + [0]].any(axis=0)
-        return np.flatnonzero(own & ~others)
+        others = [link[k] for k in obs if k not in labels]
+        if carry_below:
+            tops = {link[k] for k in labels}
+            others = [i for i in others if not self._below(i, tops)]
+        return np.flatnonzero(own & ~moves[others + [0]].any(axis=0))
+
+    def _below(self, i: int, tops: set) -> bool:
+        """Link i is one of the links ``tops`` or a descendant of one."""
+        while i >= 0 and i not in tops:
+            i = int(self.body.parent_index[i])
+        return i >= 0
 
     def _reach_for(self, labels, obs: Mapping[str, Blob3D], theta: np.ndarray) -> np.ndarray:
         """``theta`` with the parts ``labels`` (just re-acquired, :meth:`_reacquire`) moved onto their
