@@ -869,12 +869,11 @@ def test_swapped_leg_labels_are_fitted_the_right_way_round(body, cameras):
         make_estimator("baseline", body, cameras, {"fit": {"overlap_chi2": -1.0}})
 
 
-
 def test_a_leg_exchange_is_screened_by_the_knees_when_the_feet_carry_blobs(cameras):
     """fit.mirror_groups with a body whose feet carry blobs (config/pose2sim_body_model.yaml): the
     knees also move the foot blobs, which the exchange leaves labelled as they are, so before stop
     53 the [shin] hypothesis had no dofs of its own and went to the full fit every frame without a
-    screen (on the make-demo recording three of the frame's four fits, none of them winning). The
+    screen (on the make-demo recording 184 of the 321 body fits per 100 frames, none of them winning). The
     screen now moves the knees (the feet below them in its cost): shins exchanged in every view are
     still put back, and the pre-screen gates the hypothesis (with fit.mirror_prescreen_ratio 0 the
     fit is the one without the exchange, as for the default body)."""
@@ -902,6 +901,7 @@ def test_a_leg_exchange_is_screened_by_the_knees_when_the_feet_carry_blobs(camer
     assert err["default"] < 0.03, err
     assert err["off"] > 3 * err["default"], err
     assert err["no screen"] == err["off"], err
+
 
 def test_overlapping_leg_blobs_are_left_out_of_that_view(body, cameras):
     """fit.overlap_parts: a view whose two shin blobs sit on each other (the legs passing)
