@@ -887,17 +887,17 @@ def test_a_leg_exchange_is_screened_by_the_knees_when_the_feet_carry_blobs(camer
     shins = {c: [dataclasses.replace(b, label=shin_swap.get(b.label, b.label)) for b in bl]
              for c, bl in blobs_2d(feet, cameras, theta).items()}
     legs = [feet.joint_names.index(j) for j in ("l_knee", "r_knee", "l_ankle", "r_ankle")]
-    err, screens = {}, {}
+    err, estimators = {}, {}
     for key, fit in (("default", {}), ("off", {"mirror_groups": []}), ("no screen", {"mirror_prescreen_ratio": 0.0})):
-        est = make_estimator("baseline", feet, cameras, {"fit": {**fit, "overlap_parts": []}})
+        est = estimators[key] = make_estimator("baseline", feet, cameras, {"fit": {**fit, "overlap_parts": []}})
         est.update(stamp(0), blobs_2d(feet, cameras, theta))
         e = est.update(stamp(1), shins)
         err[key] = float(np.linalg.norm(e.joints[legs] - feet.joint_positions(theta)[legs], axis=1).mean())
-        obs = {label: Blob3D(label, np.zeros(3), np.eye(3)) for label in feet.blob_labels}
-        screens[key] = [sorted(feet.dof_names[d] for d in free) for _, free, _ in est._mirror_hypotheses(obs)]
-    assert screens["default"][1] == ["l_shin.hinge", "r_shin.hinge"], screens
-    assert screens["default"][0] and all(n.split(".")[0] in ("l_thigh", "r_thigh", "l_shin", "r_shin")
-                                         for n in screens["default"][0]), screens
+    obs = {label: Blob3D(label, np.zeros(3), np.eye(3)) for label in feet.blob_labels}
+    screens = [sorted(feet.dof_names[d] for d in free) for _, free, _ in estimators["default"]._mirror_hypotheses(obs)]
+    assert screens[1] == ["l_shin.hinge", "r_shin.hinge"], screens
+    assert screens[0] and all(n.split(".")[0] in ("l_thigh", "r_thigh", "l_shin", "r_shin")
+                              for n in screens[0]), screens
     assert err["default"] < 0.03, err
     assert err["off"] > 3 * err["default"], err
     assert err["no screen"] == err["off"], err

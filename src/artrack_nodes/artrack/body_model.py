@@ -187,10 +187,12 @@ class BodyModel:
         self._offsets = np.array([lk.offset for lk in links], float)
         # Jacobian bookkeeping: the link each dof moves, and which links each link carries.
         self._dof_link = np.concatenate([np.full(lk.n_dof, i) for i, lk in enumerate(links)]).astype(int)
-        carries = np.eye(len(links), dtype=bool)  # carries[l, a]: link a is l or an ancestor of l
+        carries = np.eye(len(links), dtype=bool)
         for i in range(len(links)):
             if self.parent_index[i] >= 0:
                 carries[i] |= carries[self.parent_index[i]]
+        #: (L, L) bool: link a is link l or an ancestor of l (l lies on a's subtree)
+        self.link_carried_by = carries
         #: (L, n_dof) bool: dof d moves link l
         self.dof_moves_link = carries[:, self._dof_link]
         rv = [np.arange(lk.dof_slice.start + (3 if lk.joint == "free" else 0), lk.dof_slice.stop)

@@ -2283,16 +2283,10 @@ class BaselineEstimator(_Estimator):
         link = {k: int(self.kin.blob_links[self.kin.blob_index[k]]) for k in set(obs) | set(labels)}
         own = moves[[link[k] for k in labels]].any(axis=0)
         others = [link[k] for k in obs if k not in labels]
-        if carry_below:
-            tops = {link[k] for k in labels}
-            others = [i for i in others if not self._below(i, tops)]
+        if carry_below:  # (the links at or below one of labels' links)
+            tops = [link[k] for k in labels]
+            others = [i for i in others if not self.body.link_carried_by[i, tops].any()]
         return np.flatnonzero(own & ~moves[others + [0]].any(axis=0))
-
-    def _below(self, i: int, tops: set) -> bool:
-        """Link i is one of the links ``tops`` or a descendant of one."""
-        while i >= 0 and i not in tops:
-            i = int(self.body.parent_index[i])
-        return i >= 0
 
     def _reach_for(self, labels, obs: Mapping[str, Blob3D], theta: np.ndarray) -> np.ndarray:
         """``theta`` with the parts ``labels`` (just re-acquired, :meth:`_reacquire`) moved onto their
