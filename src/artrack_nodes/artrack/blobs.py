@@ -1098,15 +1098,16 @@ class BlobTracker2D:
             for m, sel, ds2, dc2, fs in zip(models, sels, ds2s, dc2s, feats):
                 pos = np.flatnonzero(lab[sel] == m.index)  # positions in sel
                 n = pos.size
+                px, py = xs[sel[pos]], ys[sel[pos]]
                 if n >= min_px and cfg.min_component_fraction > 0:
-                    px, py = xs[sel[pos]], ys[sel[pos]]
                     box = (slice(int(py.min()), int(py.max()) + 1), slice(int(px.min()), int(px.max()) + 1))
                     sub = support[box]
                     kept = _drop_small_components(sub == m.index, sub, cfg.min_component_fraction)
                     if kept < n:
-                        pos = pos[support[py, px] == m.index]
+                        left = support[py, px] == m.index
+                        pos, px, py = pos[left], px[left], py[left]
                         n = pos.size
-                px, py, f = xs[sel[pos]], ys[sel[pos]], fs[pos]
+                f = fs[pos]
                 if n < min_px or self._oversized(m, n) or self._foreign_coloured(m, f, dc2[pos], frame_classes):
                     support[py, px] = -1
                     continue
