@@ -238,12 +238,13 @@ def main() -> int:
 
     print("\n4. Distractor (frames with head or a hand nearer the other person; claim 0; 'on them': and within "
           f"{cl.JUMP_NEAR_M:g} m of their joint)")
-    print(f"{'estimator':<11}{'feedback':<9}{'jump frames':>12}{'on them':>9}{'MPJPE mm':>9}")
+    print("   'legs': the same for the knees and ankles (not the claim; the other person's trousers look alike)")
+    print(f"{'estimator':<11}{'feedback':<9}{'jump frames':>12}{'on them':>9}{'MPJPE mm':>9}{'legs':>7}{'on them':>9}")
     for e in estimators:
         for fb in (True, False):
             r = res[("distractor", e, fb)] = cl.run(bag("distractor"), "distractor", e, fb, body)
             print(f"{e:<11}{'on' if fb else 'off':<9}{r['jump_frames']:12d}{r['jump_frames_near_other']:9d}"
-                  f"{fmt(r['mpjpe_mm'])}", flush=True)
+                  f"{fmt(r['mpjpe_mm'])}{r['leg_jump_frames']:7d}{r['leg_jump_frames_near_other']:9d}", flush=True)
 
     print("\n5. Camera count (default scene, feedback on)")
     print(f"{'estimator':<11}{'cameras':>8}{'MPJPE mm':>9}{'tracked %':>10}")
@@ -295,6 +296,8 @@ def main() -> int:
         "oracle_labels_mpjpe_mm": res[("default", sk, "labels")]["mpjpe_mm"],
         "distractor_jump_frames_feedback": res[("distractor", sk, True)]["jump_frames"],
         "distractor_jump_frames_near_other_feedback": res[("distractor", sk, True)]["jump_frames_near_other"],
+        "distractor_leg_jump_frames_feedback": res[("distractor", sk, True)]["leg_jump_frames"],
+        "distractor_leg_jump_frames_near_other_feedback": res[("distractor", sk, True)]["leg_jump_frames_near_other"],
         "mpjpe_mm_2_cameras": res[("cameras", sk, 2)]["mpjpe_mm"],
         "mpjpe_mm_1_camera": res[("cameras", sk, 1)]["mpjpe_mm"],
         "tracked_share_1_camera": res[("cameras", sk, 1)]["tracked"],

@@ -33,7 +33,9 @@ paper's Table 1 and its occlusion / distractor claims), computed on the tracked 
 * ``distractor`` — a second person walks past: frames in which the tracked head or a wrist
   is nearer to the second person's same joint than to the true one ("jumps"; the claim: 0),
   and those of them in which it is also within ``JUMP_NEAR_M`` of that joint
-  (``jump_frames_near_other``: on the other person, not a part lost far from both);
+  (``jump_frames_near_other``: on the other person, not a part lost far from both); the same
+  for the knees and ankles (``leg_jump_frames[_near_other]``, printed "legs"), which the claim
+  leaves out but which the second person's look-alike trousers can take (stop 55);
 * ``default``    — walk, waves, reach: the worst frame's MPJPE, mm.
 
 Every run is also split into phases (JSON keys; with ``--seeds`` a "phases" line after each mean
@@ -112,6 +114,7 @@ SCENES = {
     "distractor": {"distractor": True},
 }
 JUMP_NEAR_M = 0.25  # the distractor claim: a jump frame "on" the other person has a joint this near theirs
+LEG_JOINTS = ("l_knee", "r_knee", "l_ankle", "r_ankle")  # the distractor's leg figures (not the claim)
 HAND_LIMIT_M = 0.150  # the occlusion claim: no frame with a hand error above this
 SETTLE_S = 2.0  # the paper's table "settled": scored from this long after the track starts, s
 STARTUP_FRAMES = 10  # the phases' "start-up": a track's first tracked frames (score())
@@ -190,15 +193,17 @@ def claim(name: str, body, stamps: list[int], est: np.ndarray, truth: np.ndarray
                 "hand_max_settled_mm": 1e3 * float(after.max()) if after.size else float("nan"),
                 "frames_over_150mm_settled": int(np.sum(after > HAND_LIMIT_M))}
     if name == "distractor":
-        jumps = near = 0
-        parts = [head, wl, wr]
+        counts = dict.fromkeys(("jump_frames", "jump_frames_near_other", "leg_jump_frames",
+                                "leg_jump_frames_near_other"), 0)
+        legs = [names.index(n) for n in LEG_JOINTS]
         for k, t in enumerate(motion_time(name, stamps)):
             other = body.joint_positions(pose_at("distractor", float(t), body))
-            to_other = np.linalg.norm(est[k, parts] - other[parts], axis=1)
-            nearer = to_other < np.linalg.norm(est[k, parts] - truth[k, parts], axis=1)
-            jumps += int(nearer.any())
-            near += int((nearer & (to_other < JUMP_NEAR_M)).any())
-        return {"jump_frames": jumps, "jump_frames_near_other": near}
+            for prefix, parts in (("", [head, wl, wr]), ("leg_", legs)):
+                to_other = np.linalg.norm(est[k, parts] - other[parts], axis=1)
+                nearer = to_other < np.linalg.norm(est[k, parts] - truth[k, parts], axis=1)
+                counts[prefix + "jump_frames"] += int(nearer.any())
+                counts[prefix + "jump_frames_near_other"] += int((nearer & (to_other < JUMP_NEAR_M)).any())
+        return counts
     return {"worst_frame_mm": 1e3 * float(np.linalg.norm(est - truth, axis=2).mean(axis=1).max())}
 
 
@@ -206,7 +211,8 @@ def claim_text(r: dict) -> str:
     for key, fmt in (("line_rms_mm", "line {:.1f} mm"), ("rot_rms_deg", "rot {:.2f} deg"),
                      ("jump_frames", "jumps {}"), ("worst_frame_mm", "worst {:.0f} mm")):
         if key in r:
-            return fmt.format(r[key])
+            text = fmt.format(r[key])
+            return text + (f", legs {r['leg_jump_frames']}" if "leg_jump_frames" in r else "")
     if "hand_max_mm" in r:
         return f"hand max {r['hand_max_mm']:.0f} mm ({r['frames_over_150mm']} fr)"
     return "-"

@@ -88,7 +88,14 @@ def test_distractor_claim_counts_jumps_on_the_other_person_apart(closed_loop):
     est[3, r] = other[3, r] + [0.05, 0.0, 0.0]  # on the other person's wrist
     est[7, r] = other[7, r] + [0.9, 0.0, 0.5]  # lost: nearer the other person, but far from both
     c = cl.claim("distractor", body, stamps, est, truth)
-    assert c == {"jump_frames": 2, "jump_frames_near_other": 1}
+    assert c == {"jump_frames": 2, "jump_frames_near_other": 1, "leg_jump_frames": 0, "leg_jump_frames_near_other": 0}
+    # the knees and ankles are counted apart (the claim is about head and hands only)
+    ka = names.index("r_ankle")
+    est[3, ka] = other[3, ka] + [0.1, 0.0, 0.0]  # an ankle on the other person in a frame with a jump already
+    est[11, names.index("l_knee")] = other[11, names.index("l_knee")] + [0.6, 0.0, 0.3]  # lost, nearer them
+    c = cl.claim("distractor", body, stamps, est, truth)
+    assert c == {"jump_frames": 2, "jump_frames_near_other": 1, "leg_jump_frames": 2, "leg_jump_frames_near_other": 1}
+    assert cl.claim_text(c) == "jumps 2, legs 2"
 
 
 def test_smoothed_line_keeps_a_bow_and_drops_the_jitter(closed_loop):
