@@ -72,7 +72,8 @@ def test_occlusion_claim_without_the_start_up_frames(closed_loop):
 def test_distractor_claim_counts_jumps_on_the_other_person_apart(closed_loop):
     """A frame whose head or wrist lies nearer the second person's same joint than the true one is a
     jump frame; it is also on the other person only within ``JUMP_NEAR_M`` of that joint: a hand
-    lost far from both people is nearer one of them, but on neither."""
+    lost far from both people is nearer one of them, but on neither. The knees and ankles are counted
+    the same way, apart from the claim."""
     cl = closed_loop
     from artrack.motion import pose_at
 
