@@ -261,7 +261,9 @@ class MeasurementConfig:
     blob_cov: str = "shape+state"
     view_association: list = field(default_factory=lambda: ["thigh", "shin"])
     view_association_margin_chi2: float = 4.0
-    view_outlier_chi2: float = 0.0
+    #: a 3-D blob of three or more views whose weighted reprojection error is above this is solved again
+    #: without the view that disagrees (:func:`artrack.triangulation._drop_outlier_views`; 0 = off)
+    view_outlier_chi2: float = 4.0
     #: a view's blob of n pixels counts n / (n + n₀) in the triangulation, n₀ = this × the image
     #: area (:func:`artrack.triangulation.triangulate_blobs`; 0 = by its extent alone)
     small_blob_fraction: float = 3.90625e-4
