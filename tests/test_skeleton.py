@@ -633,6 +633,8 @@ def test_config_file_and_errors(body, cameras):
         load_skeleton_config({"fit": {"tolerance": 0.0}})
     with pytest.raises(InputError, match="measurement.view_outlier_chi2"):
         load_skeleton_config({"measurement": {"view_outlier_chi2": -1.0}})
+    with pytest.raises(InputError, match="measurement.view_outlier_after_frames"):
+        load_skeleton_config({"measurement": {"view_outlier_after_frames": -1}})
     with pytest.raises(InputError, match="measurement.small_blob_fraction"):
         load_skeleton_config({"measurement": {"small_blob_fraction": -1e-4}})
     with pytest.raises(InputError, match="measurement.min_view_fraction"):
@@ -1266,6 +1268,34 @@ def test_kinematic_reuses_the_raw_trackers_view_association_of_the_same_blobs(bo
         assert checked == 3 and exchanged >= 2 and bool(est.raw.overlap_drops) == bool(overlap_parts)
 
 
+def test_view_outlier_test_waits_for_the_track_to_settle(body, cameras):
+    """``measurement.view_outlier_chi2`` leaves out a view whose label sits on something else (here
+    the left hand's, 40 px below the hand in one camera), but only from the
+    ``view_outlier_after_frames``-th frame of a track on: before, all four views are triangulated
+    (a new track's labels may agree on the wrong thing); a re-initialised track waits again."""
+    after = 3
+    est = make_estimator("baseline", body, cameras, {"measurement": {"view_outlier_after_frames": after}})
+    rng = np.random.default_rng(4)
+    wrong = cameras[1].name
+
+    def frame(k):
+        blobs = blobs_2d(body, cameras, pose_at("default", 1.0 + k / FPS, body), rng, 0.5)
+        blobs[wrong] = [dataclasses.replace(b, mean=np.asarray(b.mean) + [0.0, 40.0]) if b.label == "l_hand" else b
+                        for b in blobs[wrong]]
+        return blobs
+
+    used = []
+    for k in range(8):
+        threshold = est._view_outlier_threshold()
+        est.update(stamp(k), frame(k))
+        used.append((threshold, est._triangulation[1]["l_hand"].cameras))
+    assert [t for t, _ in used] == [0.0] * (after + 1) + [4.0] * (8 - after - 1)
+    for threshold, cams in used:
+        assert cams == tuple(c.name for c in cameras if threshold == 0.0 or c.name != wrong)
+    est.initialisations += 1  # as a re-initialisation does: the new track waits again
+    assert est._view_outlier_threshold() == 0.0
+
+
 def test_kinematic_takes_the_raw_trackers_triangulations_that_needed_no_prior(body, cameras):
     """Triangulated from the very same associated blobs, a label whose rays meet does not depend on
     the priors: the kinematic estimator takes the raw tracker's result for it, and triangulates
@@ -1281,6 +1311,7 @@ def test_kinematic_takes_the_raw_trackers_triangulations_that_needed_no_prior(bo
         blobs = blobs_2d(body, cameras, pose_at("default", 1.0 + k / FPS, body), rng, 1.0)
         blobs = {c: [b for b in bl if b.label != "l_hand" or c == one_view] for c, bl in blobs.items()}
         priors = est._triangulation_priors(stamp(k)) if est.theta is not None else None
+        outlier_chi2 = est.raw._view_outlier_threshold()  # the labels whose rays meet are the raw tracker's
         est.raw._triangulation = est._triangulation = None
         est.update(stamp(k), blobs)
         if est._triangulation is None or est.raw._triangulation is None:
@@ -1288,7 +1319,7 @@ def test_kinematic_takes_the_raw_trackers_triangulations_that_needed_no_prior(bo
         seen, got, _ = est._triangulation
         _, raw_obs, raw_free = est.raw._triangulation
         m = est.cfg.measurement
-        want = triangulate_blobs(seen, est.cameras, priors, view_outlier_chi2=m.view_outlier_chi2,
+        want = triangulate_blobs(seen, est.cameras, priors, view_outlier_chi2=outlier_chi2,
                                  small_blob_fraction=m.small_blob_fraction)
         assert list(got) == list(want), k
         for lab, blob in want.items():

@@ -262,8 +262,10 @@ class MeasurementConfig:
     view_association: list = field(default_factory=lambda: ["thigh", "shin"])
     view_association_margin_chi2: float = 4.0
     #: a 3-D blob of three or more views whose weighted reprojection error is above this is solved again
-    #: without the view that disagrees (:func:`artrack.triangulation._drop_outlier_views`; 0 = off)
+    #: without the view that disagrees (:func:`artrack.triangulation._drop_outlier_views`; 0 = off) ...
     view_outlier_chi2: float = 4.0
+    #: ... once a track is this many frames old (:meth:`_Estimator._view_outlier_threshold`; 0 = always)
+    view_outlier_after_frames: int = 40
     #: a view's blob of n pixels counts n / (n + n₀) in the triangulation, n₀ = this × the image
     #: area (:func:`artrack.triangulation.triangulate_blobs`; 0 = by its extent alone)
     small_blob_fraction: float = 3.90625e-4
@@ -603,6 +605,8 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'measurement.view_association_margin_chi2' must be >= 0")
     if not out.measurement.view_outlier_chi2 >= 0:
         raise InputError("skeleton config: field 'measurement.view_outlier_chi2' must be >= 0 (0 = off)")
+    if not isinstance(out.measurement.view_outlier_after_frames, int) or out.measurement.view_outlier_after_frames < 0:
+        raise InputError("skeleton config: field 'measurement.view_outlier_after_frames' must be an integer >= 0")
     if not out.measurement.min_view_fraction >= 0:
         raise InputError("skeleton config: field 'measurement.min_view_fraction' must be >= 0 (0 = off)")
     if not 0.0 <= out.measurement.min_view_ray_angle_deg <= 90.0:
@@ -1541,13 +1545,13 @@ class _Estimator:
         shin's label on the other leg or the trunk in two or three views drags the leg with it
         (default scene seed 1, from frame ~52: a right shin 0.5-1.2 m off, the ankle 1.5 m)."""
         t = self.cfg.tracking
-        margin = t.reach_gate_margin
-        if margin <= 0:
-            return
         if self._track_key != self.initialisations:
             self._track_key, self._track_frames = self.initialisations, 0
         else:
             self._track_frames += 1
+        margin = t.reach_gate_margin
+        if margin <= 0:
+            return
         p, _ = self.kin.poses(self.theta)
         for lab, (top, reach) in self._gate_chain.items():
             if lab not in self._reacquire_chain and self._track_frames < t.reach_gate_after_frames:
@@ -1646,9 +1650,18 @@ class _Estimator:
         """(:func:`triangulate_blobs` of ``labelled``, the labels it triangulated without ``priors``)."""
         prior_free: set[str] = set()
         m = self.cfg.measurement
-        obs = triangulate_blobs(labelled, self.cameras, priors, view_outlier_chi2=m.view_outlier_chi2,
+        obs = triangulate_blobs(labelled, self.cameras, priors, view_outlier_chi2=self._view_outlier_threshold(),
                                 prior_free=prior_free, small_blob_fraction=m.small_blob_fraction)
         return obs, prior_free
+
+    def _view_outlier_threshold(self) -> float:
+        """This frame's ``measurement.view_outlier_chi2``: 0 (off) until the track has been gated
+        ``view_outlier_after_frames`` times (:meth:`_gate_reach` counts the frames of a track; none
+        before its first); a new track's labels come from a start-up pose that is often wrong, and
+        views that agree may then agree on the wrong thing."""
+        m = self.cfg.measurement
+        age = self._track_frames + 1 if self.theta is not None and self._track_key == self.initialisations else 0
+        return m.view_outlier_chi2 if age >= m.view_outlier_after_frames else 0.0
 
     def _triangulation_priors(self, stamp_ns: int) -> dict[str, Blob3D] | None:
         return None
