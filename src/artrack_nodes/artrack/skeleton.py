@@ -1451,7 +1451,7 @@ class _Estimator:
         self._gate_chain = dict(self._reacquire_chain)
         for lab in t.reach_gate_labels:
             self._gate_chain.setdefault(lab, self._chain_below_blob(lab, through_parent_blob=True))
-        self._track_key, self._track_frames = -1, 0  # (initialisations, frames gated since) for _gate_reach
+        self._track_key, self._track_frames = -1, 0  # (initialisations, tracked frames since): _count_track_frame
         #: {camera: [parts]} whose l_/r_ labels the last frame's view association exchanged
         self.view_swaps: dict[str, list[str]] = {}
         #: the last view association: (its input {camera: [Blob2D]}, its output), for _associate
@@ -1535,6 +1535,15 @@ class _Estimator:
         f = self.cfg.fit
         return None if self._edges is None else LinkGoals.from_edges(self._edges, f.edge_sigma_px, f.edge_min_found)
 
+    def _count_track_frame(self) -> None:
+        """Count this tracked frame: ``_track_frames`` is 0 on the first one after an initialisation
+        (``initialisations`` changed), then 1, 2, ... (read by :meth:`_gate_reach` and
+        :meth:`_view_outlier_threshold`)."""
+        if self._track_key != self.initialisations:
+            self._track_key, self._track_frames = self.initialisations, 0
+        else:
+            self._track_frames += 1
+
     def _gate_reach(self, obs: dict[str, Blob3D]) -> None:
         """Drop (in place) the 3-D blobs of ``tracking.reacquire_labels`` seen in two or more views
         that lie farther than ``reach_gate_margin`` times the part's reach from its shoulder in the
@@ -1545,10 +1554,6 @@ class _Estimator:
         shin's label on the other leg or the trunk in two or three views drags the leg with it
         (default scene seed 1, from frame ~52: a right shin 0.5-1.2 m off, the ankle 1.5 m)."""
         t = self.cfg.tracking
-        if self._track_key != self.initialisations:
-            self._track_key, self._track_frames = self.initialisations, 0
-        else:
-            self._track_frames += 1
         margin = t.reach_gate_margin
         if margin <= 0:
             return
@@ -1655,9 +1660,9 @@ class _Estimator:
         return obs, prior_free
 
     def _view_outlier_threshold(self) -> float:
-        """This frame's ``measurement.view_outlier_chi2``: 0 (off) until the track has been gated
-        ``view_outlier_after_frames`` times (:meth:`_gate_reach` counts the frames of a track; none
-        before its first); a new track's labels come from a start-up pose that is often wrong, and
+        """This frame's ``measurement.view_outlier_chi2``: 0 (off) until ``view_outlier_after_frames``
+        frames of the track have been counted (:meth:`_count_track_frame`; none before the first
+        after its initialisation); a new track's labels come from a start-up pose that is often wrong, and
         views that agree may then agree on the wrong thing."""
         m = self.cfg.measurement
         age = self._track_frames + 1 if self.theta is not None and self._track_key == self.initialisations else 0
@@ -1724,6 +1729,7 @@ class _Estimator:
             self.last_observed = obs
             return self._estimate(stamp_ns)
         if self.status == STATUS_TRACKING:
+            self._count_track_frame()
             self._gate_reach(obs)
             self.reacquired = self._reacquire(blobs_by_camera, obs)
         t1 = time.perf_counter()
