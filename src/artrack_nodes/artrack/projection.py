@@ -63,6 +63,7 @@ __all__ = [
     "occluders_from_body",
     "project_gaussian",
     "project_priors",
+    "visible_points",
 ]
 
 #: Default ``confidence_scale`` s in exp(-‖Σ₃‖_F / s), m².
@@ -200,6 +201,25 @@ def _occluded_many(camera_center: np.ndarray, points: np.ndarray, labels: Sequen
     other = np.array([[c.label != lab for c in capsules] for lab in labels], bool).reshape(len(points), -1)
     hit = (_segment_distances(C, end[:, None], p0[None], p1[None]) < radii) & other
     return hit.any(axis=1) & ~near
+
+
+def visible_points(camera: Camera, points: np.ndarray, label: str, capsules: Sequence[Capsule],
+                   occlusion_margin: float = 0.05, inset_px: float = 0.0, min_depth: float = 1e-3) -> np.ndarray:
+    """(N,) bool: which world points (N, 3) m a part ``label`` placed there would show in ``camera``:
+    in front of it (depth > ``min_depth``), projected inside the image shrunk by ``inset_px`` on
+    each side (and not folded back by the distortion, as OFF_IMAGE), and not OCCLUDED by a
+    capsule of another label (:func:`occluded`, to ``occlusion_margin`` short of the point)."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    out = np.zeros(len(points), bool)
+    x_cam = points @ camera.R.T + camera.t
+    front = np.flatnonzero(x_cam[:, 2] > min_depth)
+    if not len(front):
+        return out
+    r2 = (x_cam[front, 0] ** 2 + x_cam[front, 1] ** 2) / x_cam[front, 2] ** 2
+    uv, _ = camera.project(points[front])
+    inside = front[(r2 <= _fov_radius2(camera)) & camera.in_image(uv, margin=-float(inset_px))]
+    out[inside] = ~_occluded_many(camera.center, points[inside], [label] * len(inside), capsules, occlusion_margin)
+    return out
 
 
 def occluders_from_body(body, links: Iterable[LinkEstimate]) -> list[Capsule]:

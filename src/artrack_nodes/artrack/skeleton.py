@@ -205,8 +205,10 @@ from .constraints import (
     soft_energy_terms,
 )
 from .errors import InputError
+from .hidden import hide
 from .kalman import ConstantAccelerationKF
 from .lie import inverse_se3, log_se3, skew
+from .projection import Capsule, visible_points
 from .triangulation import (
     associate_views,
     blob_extent,
@@ -224,6 +226,7 @@ from .types import (
     Blob3D,
     BodyEstimate,
     LinkEstimate,
+    all_finite,
 )
 
 __all__ = [
@@ -282,6 +285,21 @@ class MeasurementConfig:
     #: triangulated with (the prediction); the body fits count it across the ray only, and this sigma
     #: (m) along it (:meth:`_Estimator._blob_targets`); 0 = as triangulated (the prediction's depth)
     one_view_depth_sigma_m: float = 0.0
+    #: negative evidence (:mod:`artrack.hidden`): a part of these labels found by one view only takes
+    #: its prior's depth along that ray where the views that looked for it and did not find it would
+    #: not have seen it (:meth:`_Estimator._hidden_priors`; [] = off)
+    hidden_labels: list = field(default_factory=lambda: ["l_hand", "r_hand"])
+    #: ... searched over the prediction's ± this many standard deviations
+    hidden_sigmas: float = 3.0
+    #: ... the probability that a view's tracker misses a part in its sight: the price of each view that
+    #: would have seen a point (:func:`artrack.hidden.hide`; 0.01: one view fewer beats any 3-sigma move)
+    hidden_miss_probability: float = 0.01
+    #: ... a point nearer the image border than this (px) counts as not seen by that view
+    hidden_inset_px: float = 0.0
+    #: a part of ``hidden_labels`` that no view found is measured, to this sigma (m), at the likeliest
+    #: point given that the views which looked did not find it (:meth:`_Estimator._hidden_observations`;
+    #: 0 = off; only beside ``tracking.min_blobs`` real 3-D blobs, and never counted as seen)
+    hidden_no_view_sigma_m: float = 0.1
 
 
 @dataclass
@@ -579,6 +597,9 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
                     ("startup.person_gap_m", out.startup.person_gap_m),
                     ("startup.one_view_depth_sigma_m", out.startup.one_view_depth_sigma_m),
                     ("measurement.one_view_depth_sigma_m", out.measurement.one_view_depth_sigma_m),
+                    ("measurement.hidden_sigmas", out.measurement.hidden_sigmas),
+                    ("measurement.hidden_inset_px", out.measurement.hidden_inset_px),
+                    ("measurement.hidden_no_view_sigma_m", out.measurement.hidden_no_view_sigma_m),
                     ("tracking.reach_gate_margin", out.tracking.reach_gate_margin))
     for name, value in non_negative:
         if value < 0:
@@ -609,6 +630,9 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'measurement.view_outlier_after_frames' must be an integer >= 0")
     if not out.measurement.min_view_fraction >= 0:
         raise InputError("skeleton config: field 'measurement.min_view_fraction' must be >= 0 (0 = off)")
+    if not 0.0 < out.measurement.hidden_miss_probability < 1.0:
+        raise InputError("skeleton config: field 'measurement.hidden_miss_probability' must be in (0, 1) "
+                         f"(got {out.measurement.hidden_miss_probability!r})")
     if not 0.0 <= out.measurement.min_view_ray_angle_deg <= 90.0:
         raise InputError("skeleton config: field 'measurement.min_view_ray_angle_deg' must be in [0, 90] degrees")
     if not isinstance(out.measurement.min_view_labels, list) or not all(
@@ -1441,7 +1465,8 @@ class _Estimator:
         #: ancestor with a blob, the chain's length down to the part's blob centre, m)
         self._reacquire_chain = {lab: self._chain_below_blob(lab) for lab in t.reacquire_labels}
         for field_name, names in (("tracking.reach_gate_labels", t.reach_gate_labels),
-                                  ("measurement.min_view_labels", self.cfg.measurement.min_view_labels)):
+                                  ("measurement.min_view_labels", self.cfg.measurement.min_view_labels),
+                                  ("measurement.hidden_labels", self.cfg.measurement.hidden_labels)):
             unknown = sorted(set(names) - self.labels)
             if unknown:
                 raise InputError(f"skeleton config: field '{field_name}' names '{unknown[0]}', which "
@@ -1452,6 +1477,9 @@ class _Estimator:
         for lab in t.reach_gate_labels:
             self._gate_chain.setdefault(lab, self._chain_below_blob(lab, through_parent_blob=True))
         self._track_key, self._track_frames = -1, 0  # (initialisations, tracked frames since): _count_track_frame
+        #: (pose, its capsules) and {label: its chain's link names}, for :meth:`_hidden_capsules`
+        self._hidden_pose: tuple[np.ndarray, list[Capsule]] | None = None
+        self._hidden_chain: dict[str, set[str]] = {}
         #: {camera: [parts]} whose l_/r_ labels the last frame's view association exchanged
         self.view_swaps: dict[str, list[str]] = {}
         #: the last view association: (its input {camera: [Blob2D]}, its output), for _associate
@@ -1634,7 +1662,12 @@ class _Estimator:
             labelled, self.view_swaps = self._associate(labelled)
         labelled = self._drop_small_views(labelled)
         obs = self._triangulate_labelled(labelled, priors)
-        return {k: v for k, v in obs.items() if k in self.labels}
+        obs = {k: v for k, v in obs.items() if k in self.labels}
+        if (priors and self.cfg.measurement.hidden_no_view_sigma_m > 0 and self.status == STATUS_TRACKING
+                and len(obs) >= self.cfg.tracking.min_blobs):
+            # (only beside enough real blobs: a pseudo-measurement never keeps a track alive or starts one)
+            obs.update(self._hidden_observations(labelled, priors, obs))
+        return obs
 
     def _drop_small_views(self, labelled: dict[str, list[Blob2D]]) -> dict[str, list[Blob2D]]:
         """{camera: 2-D blobs} without the head's and hands' slivers (``measurement.min_view_fraction``,
@@ -1655,9 +1688,91 @@ class _Estimator:
         """(:func:`triangulate_blobs` of ``labelled``, the labels it triangulated without ``priors``)."""
         prior_free: set[str] = set()
         m = self.cfg.measurement
+        if priors and m.hidden_labels:
+            priors = self._hidden_priors(labelled, priors)
         obs = triangulate_blobs(labelled, self.cameras, priors, view_outlier_chi2=self._view_outlier_threshold(),
                                 prior_free=prior_free, small_blob_fraction=m.small_blob_fraction)
         return obs, prior_free
+
+    def _hidden_capsules(self, label: str) -> list[Capsule]:
+        """The current pose's shapes as capsules (:func:`artrack.projection.visible_points`'s occluders
+        for :mod:`artrack.hidden`), without those of ``label``'s chain (:meth:`_chain_below_blob`)."""
+        if self._hidden_pose is None or not np.array_equal(self._hidden_pose[0], self.theta):
+            p0, p1, radius, link, _ = self.body.capsules(self.theta)
+            names = self.body.link_names
+            self._hidden_pose = (np.array(self.theta, float), [Capsule(names[int(k)], a, b, float(r))
+                                              for a, b, r, k in zip(p0, p1, radius, link, strict=True)])
+        if label not in self._hidden_chain:
+            top, _ = self._chain_below_blob(label)
+            i, chain = int(self.kin.blob_links[self.kin.blob_index[label]]), set()
+            while True:
+                chain.add(self.body.link_names[i])
+                if i == top or self.body.links[i].parent is None:
+                    break
+                i = int(self.kin.parent[i])
+            self._hidden_chain[label] = chain
+        chain = self._hidden_chain[label]
+        return [c for c in self._hidden_pose[1] if c.label not in chain]
+
+    def _hide(self, label: str, prior: Blob3D, silent: list[str], ray=None) -> np.ndarray | None:
+        """:func:`artrack.hidden.hide` for ``label``'s prior, with those of the cameras ``silent`` (their
+        trackers found no blob of it) that looked for it: where the prior is VISIBLE by the projection's
+        test (the trackers suppress a label whose prior is OCCLUDED or OFF_IMAGE, so their silence
+        says nothing), and the reach of its chain from the current pose."""
+        m = self.cfg.measurement
+        self._hidden_capsules(label)
+        every = [c for c in self._hidden_pose[1] if c.label != label]
+        mean = np.asarray(prior.mean, float).reshape(1, 3)
+        looked = [self.cameras[c] for c in silent
+                  if visible_points(self.cameras[c], mean, label, every,
+                                    inset_px=-0.05 * max(self.cameras[c].width, self.cameras[c].height))[0]]
+        if not looked:
+            return None
+        top, reach = self._chain_below_blob(label)
+        p, _ = self.kin.poses(self.theta)
+        return hide(label, prior.mean, prior.cov, looked, self._hidden_capsules(label),
+                    ray=ray, reach=(p[top], reach), sigmas=m.hidden_sigmas,
+                    miss_probability=m.hidden_miss_probability, inset_px=m.hidden_inset_px)
+
+    def _hidden_priors(self, labelled: dict[str, list[Blob2D]], priors: Mapping[str, Blob3D]) -> Mapping[str, Blob3D]:
+        """``priors`` with those of the ``measurement.hidden_labels`` that one view found moved along its
+        ray to the likeliest depth given that the other views did not find them
+        (:func:`artrack.hidden.hide`): the depth a one-view 3-D blob takes from its prior is then one
+        the silent views allow."""
+        out = None
+        for lab in self.cfg.measurement.hidden_labels:
+            views = [c for c, bl in labelled.items() if any(b.label == lab for b in bl)]
+            if len(views) != 1 or lab not in priors or self.theta is None:
+                continue
+            blob = next(b for b in labelled[views[0]] if b.label == lab)
+            if not all_finite(blob.mean):
+                continue
+            origin, d = self.cameras[views[0]].rays(np.asarray(blob.mean, float).reshape(1, 2))
+            silent = [c for c in self.cameras if c != views[0]]
+            x = self._hide(lab, priors[lab], silent, ray=(origin, d[0]))
+            if x is not None:
+                out = dict(priors) if out is None else out
+                out[lab] = dataclasses.replace(priors[lab], mean=x)
+        return priors if out is None else out
+
+    def _hidden_observations(self, labelled: dict[str, list[Blob2D]], priors: Mapping[str, Blob3D],
+                             obs: Mapping[str, Blob3D]) -> dict[str, Blob3D]:
+        """Pseudo-measurements (no cameras) of the ``measurement.hidden_labels`` that no view found, where
+        their prediction would have been seen by views that looked: the likeliest point given that
+        those views did not find them (:func:`artrack.hidden.hide`), to ``hidden_no_view_sigma_m``."""
+        m = self.cfg.measurement
+        out = {}
+        for lab in m.hidden_labels:
+            if lab in obs or lab not in priors or self.theta is None:
+                continue
+            if any(b.label == lab for bl in labelled.values() for b in bl):
+                continue  # found, but not triangulated
+            x = self._hide(lab, priors[lab], list(self.cameras))
+            if x is not None:
+                # measurement_cov(blob) = cov_scale · cov + floor²: the sigma asked for
+                var = max(m.hidden_no_view_sigma_m**2 - m.floor_m**2, 0.0) / max(m.cov_scale, 1e-12)
+                out[lab] = Blob3D(lab, x, var * np.eye(3), ())
+        return out
 
     def _view_outlier_threshold(self) -> float:
         """This frame's ``measurement.view_outlier_chi2``: 0 (off) until ``view_outlier_after_frames``
@@ -1716,7 +1831,7 @@ class _Estimator:
                 self._start_verification()
                 self.status, self.missed = STATUS_TRACKING, 0
                 self.stamp_ns = stamp_ns
-                self.quality = len(obs) / max(len(self.labels), 1)
+                self.quality = _n_seen(obs) / max(len(self.labels), 1)
                 self.last_observed = obs
                 return self._estimate(stamp_ns)
             if self.theta is None:
@@ -1742,7 +1857,7 @@ class _Estimator:
         elif self.status != STATUS_LOST:
             self.status = STATUS_TRACKING
         self.stamp_ns = stamp_ns
-        self.quality = len(obs) / max(len(self.labels), 1)
+        self.quality = _n_seen(obs) / max(len(self.labels), 1)
         self.last_observed = obs
         if self._verify_left > 0 and len(obs) >= cfg.min_blobs:
             self._verify_facing(stamp_ns, obs)
@@ -1892,8 +2007,9 @@ class _Estimator:
         return out
 
     def _n_used(self, obs: Mapping[str, Blob3D]) -> int:
-        """Measurements the last step actually used (a frame with fewer counts as unseen)."""
-        return len(obs)
+        """Measurements the last step actually used (a frame with fewer counts as unseen); the
+        pseudo-measurements of parts no view found (:meth:`_hidden_observations`) do not count."""
+        return _n_seen(obs)
 
     # -- initialisation ----------------------------------------------------------
     @staticmethod
@@ -2167,6 +2283,11 @@ class _Estimator:
 
     def _predict(self, stamp_ns: int) -> BodyEstimate:
         raise NotImplementedError
+
+
+def _n_seen(obs: Mapping[str, Blob3D]) -> int:
+    """The 3-D blobs of ``obs`` that some view found (not the pseudo-measurements, which have no cameras)."""
+    return sum(1 for blob in obs.values() if blob.cameras)
 
 
 def _pose_jacobians(body: BodyModel, theta: np.ndarray, h: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
@@ -2560,7 +2681,7 @@ class KinematicEstimator(_Estimator):
         self.omega = np.zeros((self.kin.n_links, 3))
         self.link_cov = np.tile(np.eye(6) * k.init_position_sigma_m**2, (self.kin.n_links, 1, 1))
         self.iterations = 0
-        self.n_accepted = len(obs)
+        self.n_accepted = _n_seen(obs)
         self._fit_theta = None  # the outlier fit's own track (orientation_from_fit)
         self._filter_frames = 0
 
@@ -2720,7 +2841,7 @@ class KinematicEstimator(_Estimator):
         x[~used, 6:9] *= k.coast_acceleration_decay
         self.blob_kf.x_prior = self.blob_kf.x = x
         self.blob_kf.update(z, Rm, used)
-        self.n_accepted = int(mask.sum())
+        self.n_accepted = int(sum(mask[self.kin.blob_index[lab]] for lab, blob in obs.items() if blob.cameras))
         t2 = time.perf_counter()
         R_pred = exp_so3(self.omega * dt) @ self.R
         # the links' orientation springs: toward the frame's robust body fit when it ran, else the
@@ -2861,7 +2982,7 @@ class DynamicEstimator(KinematicEstimator):
         )
 
     def _n_used(self, obs):
-        return len(obs)
+        return _n_seen(obs)
 
     def _priors_callable(self, static: list):
         d = self.cfg.dynamic
