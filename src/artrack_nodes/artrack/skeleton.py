@@ -1477,7 +1477,7 @@ class _Estimator:
         for lab in t.reach_gate_labels:
             self._gate_chain.setdefault(lab, self._chain_below_blob(lab, through_parent_blob=True))
         self._track_key, self._track_frames = -1, 0  # (initialisations, tracked frames since): _count_track_frame
-        #: (pose, its capsules) and {label: its chain's link names}, for :meth:`_hidden_capsules`
+        #: (pose, its capsules) and {label: its chain's link names}: :meth:`_pose_capsules`, :meth:`_hidden_capsules`
         self._hidden_pose: tuple[np.ndarray, list[Capsule]] | None = None
         self._hidden_chain: dict[str, set[str]] = {}
         #: {camera: [parts]} whose l_/r_ labels the last frame's view association exchanged
@@ -1694,25 +1694,28 @@ class _Estimator:
                                 prior_free=prior_free, small_blob_fraction=m.small_blob_fraction)
         return obs, prior_free
 
-    def _hidden_capsules(self, label: str) -> list[Capsule]:
-        """The current pose's shapes as capsules (:func:`artrack.projection.visible_points`'s occluders
-        for :mod:`artrack.hidden`), without those of ``label``'s chain (:meth:`_chain_below_blob`)."""
+    def _pose_capsules(self) -> list[Capsule]:
+        """The current pose's shapes as capsules (computed once per pose)."""
         if self._hidden_pose is None or not np.array_equal(self._hidden_pose[0], self.theta):
             p0, p1, radius, link, _ = self.body.capsules(self.theta)
             names = self.body.link_names
             self._hidden_pose = (np.array(self.theta, float), [Capsule(names[int(k)], a, b, float(r))
                                               for a, b, r, k in zip(p0, p1, radius, link, strict=True)])
+        return self._hidden_pose[1]
+
+    def _hidden_capsules(self, label: str) -> list[Capsule]:
+        """:meth:`_pose_capsules` without those of ``label``'s chain (:meth:`_chain_below_blob`): the
+        occluders of :mod:`artrack.hidden` (a drifted forearm must not explain its own hand away)."""
         if label not in self._hidden_chain:
             top, _ = self._chain_below_blob(label)
-            i, chain = int(self.kin.blob_links[self.kin.blob_index[label]]), set()
-            while True:
-                chain.add(self.body.link_names[i])
-                if i == top or self.body.links[i].parent is None:
-                    break
+            i = int(self.kin.blob_links[self.kin.blob_index[label]])
+            chain = {self.body.link_names[i]}
+            while i != top:  # top is an ancestor of the blob's link
                 i = int(self.kin.parent[i])
+                chain.add(self.body.link_names[i])
             self._hidden_chain[label] = chain
         chain = self._hidden_chain[label]
-        return [c for c in self._hidden_pose[1] if c.label not in chain]
+        return [c for c in self._pose_capsules() if c.label not in chain]
 
     def _hide(self, label: str, prior: Blob3D, silent: list[str], ray=None) -> np.ndarray | None:
         """:func:`artrack.hidden.hide` for ``label``'s prior, with those of the cameras ``silent`` (their
@@ -1720,8 +1723,7 @@ class _Estimator:
         test (the trackers suppress a label whose prior is OCCLUDED or OFF_IMAGE, so their silence
         says nothing), and the reach of its chain from the current pose."""
         m = self.cfg.measurement
-        self._hidden_capsules(label)
-        every = [c for c in self._hidden_pose[1] if c.label != label]
+        every = [c for c in self._pose_capsules() if c.label != label]
         mean = np.asarray(prior.mean, float).reshape(1, 3)
         looked = [self.cameras[c] for c in silent
                   if visible_points(self.cameras[c], mean, label, every,
