@@ -366,7 +366,9 @@ def test_startup_holds_its_heading_and_skips_a_two_view_ghost_hand(body, cameras
     that off too, the fit turns the body towards the ghost by 28-40 deg. (Held: 15-17 deg since the
     head's blob centre sits where the tracker triangulates it, at the neck, config/body_model.yaml;
     1-13 deg with the 'auto' centre 31 mm further forward, which told the fit more of the facing.
-    In the closed loop the start-up headings of seeds 1-10 moved by 3 deg at most.)"""
+    In the closed loop the start-up headings of seeds 1-10 moved by 3 deg at most.) Shown without
+    startup.share_taken_views, then with it (the default), where a hand's blob can make the ghost's
+    third view."""
     theta = body.rest_pose()
     theta[0:6] = [0.3, -0.2, 0.95, 0.0, 0.0, yaw]
     theta[body.dof_slice("l_upper_arm")] = [0.0, 0.5, 0.0]  # left arm swung back
@@ -391,13 +393,22 @@ def test_startup_holds_its_heading_and_skips_a_two_view_ghost_hand(body, cameras
         err = abs((math.atan2(R[1, 0], R[0, 0]) - yaw + np.pi) % (2 * np.pi) - np.pi)
         return math.degrees(err), float(np.linalg.norm(_hand(e, "l_hand") - ghost)), e
 
-    err, to_ghost, e = start()
+    err, to_ghost, e = start(share_taken_views=False)
     assert err < 10 and to_ghost > 0.3, (err, to_ghost)
     assert np.linalg.norm(_hand(e, "r_hand") - centres[body.blob_labels.index("r_hand")]) < 0.05
-    err, to_ghost, _ = start(min_hand_views=0)
+    err, to_ghost, _ = start(min_hand_views=0, share_taken_views=False)
     assert to_ghost < 0.05 and err < 20, (err, to_ghost)
-    err, to_ghost, _ = start(min_hand_views=0, heading_sigma_rad=0.0)
+    err, to_ghost, _ = start(min_hand_views=0, heading_sigma_rad=0.0, share_taken_views=False)
     assert to_ghost < 0.05 and err > 25, (err, to_ghost)
+    # The cost of startup.share_taken_views (on by default): at yaw 0 and 2.6 the ghost's line of
+    # sight in a third view passes through the right hand's blob (at yaw 0: cam1), which then counts
+    # among the ghost's views, and the ghost is taken as the left hand; the heading is still held
+    # within 20 deg.
+    err, to_ghost, _ = start()
+    if yaw in (0.0, 2.6):
+        assert to_ghost < 0.05 and err < 20, (err, to_ghost)
+    else:
+        assert err < 10 and to_ghost > 0.3, (err, to_ghost)
 
 
 def test_an_oversized_skin_blob_sees_a_start_up_point_but_does_not_locate_it(cameras):
@@ -435,6 +446,56 @@ def test_an_oversized_skin_blob_sees_a_start_up_point_but_does_not_locate_it(cam
     X, views, located = min(gated, key=lambda p: np.linalg.norm(p[0] - hand))
     assert np.linalg.norm(X - hand) < 0.01
     assert views == {"cam0", "cam1", "cam2", "cam3"} and located == {"cam1", "cam3"}
+
+
+def test_a_view_where_the_hands_merge_sees_both_start_up_points(cameras):
+    """startup.share_taken_views (:func:`match_skin_blobs`): the two hands merge into one blob in cam0
+    and are apart in the other three views. The better hand takes the merged blob; the other hand's
+    candidates all extend to that blob too, and without sharing they were all dropped, so the start-up
+    saw one hand. With sharing the second hand is kept, triangulated from its own three blobs, and
+    cam0 counts among its views without locating it; not when the hands are nearer each other
+    horizontally than share_min_separation_m. The face's blobs are not shared."""
+    cams = {c.name: c for c in cameras}
+    face, left, right = np.array([0.0, 0.0, 1.6]), np.array([0.05, 0.2, 1.0]), np.array([0.05, 0.0, 0.95])
+
+    def blob(cam, X, sigma_m, pixels=300):
+        m, J = cam.project_jacobian(X[None])
+        return Blob2D("skin", m[0], J[0] @ (np.eye(3) * sigma_m**2) @ J[0].T, pixel_count=pixels)
+
+    skin = {name: [blob(cam, face, 0.06, 900)] for name, cam in cams.items()}
+    for name, cam in cams.items():
+        if name == "cam0":
+            skin[name].append(blob(cam, 0.5 * (left + right), 0.12, 600))
+        else:
+            skin[name] += [blob(cam, left, 0.03), blob(cam, right, 0.03)]
+
+    def near(found, X):
+        return [(views, set(b.cameras)) for P, _, views, b in found if np.linalg.norm(P - X) < 0.01]
+
+    dropped = match_skin_blobs(skin, cams, 6)
+    assert len(near(dropped, face)) == 1
+    assert len(near(dropped, left)) + len(near(dropped, right)) == 1, dropped
+    shared = match_skin_blobs(skin, cams, 6, share_taken_views=True)
+    assert len(near(shared, left)) == 1 and len(near(shared, right)) == 1, shared
+    views = [set(v) for v, _ in near(shared, left) + near(shared, right)]
+    assert views == [set(cams)] * 2
+    located = sorted(len(cams_) for _, cams_ in near(shared, left) + near(shared, right))
+    assert located == [3, 4]
+    # The hands are 0.2 m apart horizontally: a point that close to the blob's owner is not the other hand.
+    apart = match_skin_blobs(skin, cams, 6, share_taken_views=True, share_min_separation_m=0.25)
+    assert len(near(apart, left)) + len(near(apart, right)) == 1, apart
+
+    # A skin-coloured ghost 0.15 m beside the face, apart from it in cam1 and cam3 and inside the
+    # face's wide blob in cam0 and cam2: the face's blobs are not shared, so it stays a two-view point.
+    ghost = face + np.array([0.0, 0.15, -0.05])
+    for name, cam in cams.items():
+        if name in ("cam0", "cam2"):
+            skin[name][0] = blob(cam, face, 0.1, 1500)
+        else:
+            skin[name].append(blob(cam, ghost, 0.03, 200))
+    found = match_skin_blobs(skin, cams, 6, share_taken_views=True)
+    assert len(near(found, face)) == 1
+    assert [len(v) for v, _ in near(found, ghost)] in ([], [2]), found
 
 
 def test_status_initializing_lost_and_recovery(body, cameras):

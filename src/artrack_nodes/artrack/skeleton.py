@@ -126,7 +126,8 @@ and, with ``startup.person_gap_m`` > 0, grouped into people by their horizontal 
 which the fullest group whose face is nearest ``start_xy`` is kept, :func:`nearest_person`),
 the highest becomes the head (face), the two others the hands (a hand must be
 matched in ``startup.min_hand_views`` views: a point only two views agree on is more
-often a skin-coloured ghost);
+often a skin-coloured ghost; a view where the two hands merge into one blob counts for
+both, ``startup.share_taken_views``);
 the heading is taken from the face's horizontal offset from the body axis and
 from the line between the hands (whose two perpendicular choices are tried), and
 the rest pose rotated about z is fitted for each candidate, held near that heading
@@ -486,6 +487,11 @@ class StartupConfig:
     #: a start-up skin blob larger than this (m, the side of its area's square at the matched point's
     #: depth, :func:`blob_size_m`) sees the point but does not locate it (:func:`match_skin_blobs`); 0 = off
     max_skin_size_m: float = 0.32
+    #: a start-up skin point whose extension to a further view took a blob that a better point other
+    #: than the face, at least ``min_hand_separation_m`` away horizontally, already took (two hands
+    #: merged there) is kept, that view seeing it without locating it (:func:`match_skin_blobs`
+    #: ``share_taken_views``); False = such a point is dropped
+    share_taken_views: bool = True
     #: skin points farther apart than this horizontally (single linkage) are different people; with
     #: several, start-up starts on the fullest group (up to three points) whose highest point (the
     #: face) is nearest ``start_xy`` (:func:`nearest_person`); 0 = off
@@ -1262,6 +1268,8 @@ def match_skin_blobs(
     gate_px: float = 4.0,
     missing_view_penalty_px: float = 10.0,
     max_size_m: float = 0.0,
+    share_taken_views: bool = False,
+    share_min_separation_m: float = 0.0,
 ) -> list[tuple[np.ndarray, float, tuple[str, ...], Blob3D]]:
     """Match unlabelled skin blobs across views into at most ``max_points`` 3-D points.
 
@@ -1274,7 +1282,14 @@ def match_skin_blobs(
     sharing a 2-D blob. ``max_size_m`` > 0: a blob larger than this at the point
     (:func:`blob_size_m`; a hand merged in that view with a ghost of the background or
     another skin region) sees the point but does not locate it: it counts among the
-    point's views, not in its triangulation, and cannot seed a pair. Returns [(X (3,)
+    point's views, not in its triangulation, and cannot seed a pair. ``share_taken_views``:
+    a candidate whose extension took a blob that a better point has already taken (two hands
+    merged in that view) is not dropped: that view sees it without locating it, and it is
+    triangulated again from its other blobs if at least two remain; but not when that better
+    point is the highest so far (the face): a ghost of the start position near the head lined up
+    with the face's blobs (synthetic default scene, seed 21), nor when the two points are less than
+    ``share_min_separation_m`` apart horizontally (the other hand stands beside a hand; a skin
+    point stacked above it is more often its forearm or a ghost: self-occlusion seed 44). Returns [(X (3,)
     world m, score px, the names of the cameras that see it, the triangulated Blob3D
     (label 'skin'; its cameras those that locate it))], best first.
     """
@@ -1337,14 +1352,24 @@ def match_skin_blobs(
                     errs.append(float(np.linalg.norm(uv[0] - np.asarray(skin_by_camera[c][k].mean, float))))
                 seen = len(members) + len(oversized)
                 score = float(np.mean(errs)) + missing_view_penalty_px * (len(names) - seen)
-                cands[key] = (blob.mean, score, tuple(sorted([*members, *oversized])), blob)
+                cands[key] = (blob.mean, score, tuple(sorted([*members, *oversized])), blob, members)
     out = []
-    used: set = set()
-    for key, (X, score, cams, blob) in sorted(cands.items(), key=lambda kv: kv[1][1]):
-        if any(m in used for m in key):
-            continue
+    owner: dict = {}  # a taken 2-D blob -> the index in ``out`` of the point that took it
+    for key, (X, score, cams, blob, members) in sorted(cands.items(), key=lambda kv: kv[1][1]):
+        taken = [m for m in key if m in owner]
+        if taken:
+            # Shared only with points below the highest one so far (the face: see the docstring).
+            highest = max(range(len(out)), key=lambda i: float(out[i][0][2]))
+            free = {c: k for c, k in members.items() if (c, k) not in owner}
+            if not share_taken_views or len(free) < 2 or any(owner[m] == highest for m in taken):
+                continue
+            blob = triangulate_blob([(cameras[c], skin_by_camera[c][k]) for c, k in sorted(free.items())])
+            if blob is None or any(np.linalg.norm(blob.mean[:2] - out[owner[m]][0][:2]) < share_min_separation_m
+                                   for m in taken):
+                continue
+            X = blob.mean
+        owner.update(dict.fromkeys((m for m in key if m not in owner), len(out)))
         out.append((X, score, cams, blob))
-        used |= set(key)
         if len(out) >= max_points:
             break
     return out
@@ -2105,7 +2130,8 @@ class _Estimator:
             sk = sorted((b for b in bl if b.label == SKIN), key=lambda b: -b.pixel_count)
             skin[c] = sk[: s.max_skin_blobs_per_camera]
         points = match_skin_blobs(
-            skin, self.cameras, 6, s.match_gate_sigma, s.match_gate_px, s.missing_view_penalty_px, s.max_skin_size_m
+            skin, self.cameras, 6, s.match_gate_sigma, s.match_gate_px, s.missing_view_penalty_px, s.max_skin_size_m,
+            s.share_taken_views, s.min_hand_separation_m,
         )
         centre = None if centre_blob is None else centre_blob.mean
         rest_p, rest_R = self.kin.poses(self.kin.rest)
