@@ -61,6 +61,7 @@ __all__ = [
     "confidence_from_covariance",
     "occluded",
     "occluders_from_body",
+    "off_image_margin_px",
     "project_gaussian",
     "project_priors",
     "visible_points",
@@ -203,6 +204,11 @@ def _occluded_many(camera_center: np.ndarray, points: np.ndarray, labels: Sequen
     return hit.any(axis=1) & ~near
 
 
+def off_image_margin_px(camera: Camera) -> float:
+    """The default OFF_IMAGE tolerance of :func:`project_priors`: 5 % of the camera's larger image side, px."""
+    return 0.05 * max(camera.width, camera.height)
+
+
 def visible_points(camera: Camera, points: np.ndarray, label: str, capsules: Sequence[Capsule],
                    occlusion_margin: float = 0.05, inset_px: float = 0.0, min_depth: float = 1e-3) -> np.ndarray:
     """(N,) bool: which world points (N, 3) m a part ``label`` placed there would show in ``camera``:
@@ -314,7 +320,7 @@ def project_priors(
              for k, b in enumerate(blobs3d)]
     out: dict[str, list[Prior2D]] = {}
     for cam in cams:
-        m = 0.05 * max(cam.width, cam.height) if margin is None else float(margin)
+        m = off_image_margin_px(cam) if margin is None else float(margin)
         r2_max = _fov_radius2(cam)
         # all blobs of this camera at once: projection with the first-order covariance, the
         # field-of-view and image tests, and the lines of sight against the capsules

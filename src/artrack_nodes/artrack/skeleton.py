@@ -209,7 +209,7 @@ from .errors import InputError
 from .hidden import hide
 from .kalman import ConstantAccelerationKF
 from .lie import inverse_se3, log_se3, skew
-from .projection import Capsule, visible_points
+from .projection import Capsule, off_image_margin_px, visible_points
 from .triangulation import (
     associate_views,
     blob_extent,
@@ -1752,7 +1752,7 @@ class _Estimator:
         mean = np.asarray(prior.mean, float).reshape(1, 3)
         looked = [self.cameras[c] for c in silent
                   if visible_points(self.cameras[c], mean, label, every,
-                                    inset_px=-0.05 * max(self.cameras[c].width, self.cameras[c].height))[0]]
+                                    inset_px=-off_image_margin_px(self.cameras[c]))[0]]
         if not looked:
             return None
         top, reach = self._chain_below_blob(label)
