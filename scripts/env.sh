@@ -20,6 +20,11 @@ if [ "${1:-}" != "--no-workspace" ]; then
   done
   export PATH=$_ins/artrack_nodes/lib/artrack_nodes:$PATH
 fi
+# Fast DDS with a shared-memory segment large enough for a frame of camera images
+# (config/fastdds.xml says why); a profile the user set is kept.
+if [ -z "${FASTRTPS_DEFAULT_PROFILES_FILE:-}" ]; then
+  export FASTRTPS_DEFAULT_PROFILES_FILE=$_artrack_root/config/fastdds.xml
+fi
 unset _artrack_root _venv _ins _pyver _pkg
 # Discovery stays on this machine unless the user widens it (two-host runs: SUBNET).
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}

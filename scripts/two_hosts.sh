@@ -3,7 +3,8 @@
 # veth pair (10.231.63.1 <-> 10.231.63.2), as the original system ran on several computers.
 #   camera host : bag_player + blob_features_<cam> (images stay on this host)
 #   tracker host: skeleton + feedback_projection + body_publisher + bag_recorder
-# Blobs, priors and bodies cross the link over UDP (shared memory off: FASTDDS_BUILTIN_TRANSPORTS=UDPv4).
+# Blobs, priors and bodies cross the link over UDP (shared memory off: FASTDDS_BUILTIN_TRANSPORTS=UDPv4,
+# and not config/fastdds.xml, whose shared-memory transport would bypass the link).
 #
 #   ROS_DOMAIN_ID=63 bash scripts/two_hosts.sh BAG OUT [key=value ...]   (graph variables, as --set)
 #
@@ -38,7 +39,7 @@ done
 mkdir -p "$OUT"
 # shellcheck disable=SC1091
 . "$ROOT/scripts/env.sh"
-COMMON=(env ROS_DOMAIN_ID="$DOMAIN" ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET FASTDDS_BUILTIN_TRANSPORTS=UDPv4)
+COMMON=(env -u FASTRTPS_DEFAULT_PROFILES_FILE ROS_DOMAIN_ID="$DOMAIN" ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET FASTDDS_BUILTIN_TRANSPORTS=UDPv4)
 ARGS=(config/graph.yaml --set "bag=$BAG" --set "out=$OUT/graph")
 for s in "${SETS[@]}"; do ARGS+=(--set "$s"); done
 cd "$ROOT"

@@ -74,3 +74,24 @@ def test_camera_ingest_downscales_images_and_intrinsics(env, tmp_path):
         executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=context)
+
+
+def test_rclpy_messages_take_image_and_cloud_bytes_whole():
+    """The publishers' fast path (MsgFactory.bytes_field: rclpy takes an array('B') as it is, anything
+    else element by element, ~37 ms per 272x480 image): the bytes arrive unchanged and in order, from
+    a non-contiguous image too."""
+    import array
+
+    from artrack.messages import image_msg, pointcloud_msg, points_from_pointcloud_msg
+
+    f = rclpy_factory()
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (7, 9, 3), np.uint8)
+    for source in (img, img[:, ::-1]):  # the second is a strided view
+        msg = image_msg(f, source, 5, "cam_optical_frame")
+        assert isinstance(msg.data, array.array) and (msg.height, msg.width, msg.step) == (7, 9, 27)
+        np.testing.assert_array_equal(bgr_from_image_msg(msg), source)
+    pts = rng.normal(size=(11, 3)).astype(np.float32)
+    cloud = pointcloud_msg(f, pts, 5, "rgbd_optical_frame")
+    assert isinstance(cloud.data, array.array) and len(cloud.data) == 11 * 12
+    np.testing.assert_array_equal(points_from_pointcloud_msg(cloud), pts.astype(float))

@@ -13,6 +13,7 @@ round trip is exact (tested), which is what lets the live graph and
 
 from __future__ import annotations
 
+import array
 import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,11 +30,18 @@ WORLD_FRAME = "world"
 
 
 class MsgFactory:
-    """Builds messages by type name from a class lookup (rclpy or rosbags)."""
+    """Builds messages by type name from a class lookup (rclpy or rosbags).
 
-    def __init__(self, lookup: Callable[[str], type]):
+    bytes_field: how a ``uint8[]`` field (image, point cloud data) takes an array of bytes:
+    rosbags keeps numpy arrays; rclpy's setters copy an ``array.array('B')`` as it is but read
+    anything else element by element (a 272×480 BGR image: ~37 ms).
+    """
+
+    def __init__(self, lookup: Callable[[str], type],
+                 bytes_field: Callable[[np.ndarray], Any] = lambda a: a):
         self._lookup = lookup
         self._cache: dict[str, type] = {}
+        self.bytes_field = bytes_field
 
     def cls(self, name: str) -> type:
         if name not in self._cache:
@@ -52,7 +60,7 @@ def rclpy_factory() -> MsgFactory:
         pkg, sub, cls = name.split("/")
         return getattr(importlib.import_module(f"{pkg}.{sub}"), cls)
 
-    return MsgFactory(lookup)
+    return MsgFactory(lookup, lambda a: array.array("B", np.ascontiguousarray(a, np.uint8).tobytes()))
 
 
 def rosbags_factory() -> MsgFactory:
@@ -429,7 +437,7 @@ def image_msg(f: MsgFactory, image_bgr: np.ndarray, stamp_ns: int, frame_id: str
         encoding="bgr8",
         is_bigendian=0,
         step=w * 3,
-        data=img.reshape(-1),
+        data=f.bytes_field(img.reshape(-1)),
     )
 
 
@@ -466,7 +474,7 @@ def pointcloud_msg(f: MsgFactory, points: np.ndarray, stamp_ns: int, frame_id: s
         is_bigendian=False,
         point_step=12,
         row_step=12 * len(pts),
-        data=pts.view(np.uint8).reshape(-1),
+        data=f.bytes_field(pts.view(np.uint8).reshape(-1)),
         is_dense=bool(np.all(np.isfinite(pts))),
     )
 
