@@ -23,6 +23,7 @@ from .common import (
     PREDICTION_TOPIC,
     RESULT_QOS,
     CameraPublishers,
+    Pacer,
     camera_topic,
     declare_all,
     msgs,
@@ -54,6 +55,8 @@ PARAMS = [
 LIMITS = {"rate": (0.01, 100.0), "start_timeout_s": (0.0, 3600.0), "frame_timeout_s": (0.0, 3600.0),
           "max_frames": (0, 2**31 - 1), "linger_s": (0.0, 3600.0)}
 RUNTIME = ("rate", "frame_timeout_s", "linger_s")  # read from self.p on every tick
+#: period of the housekeeping timer (graph discovery, timeouts, lingering), s
+HOUSEKEEPING_S = 0.05
 
 
 class BagPlayerNode(Node):
@@ -91,7 +94,11 @@ class BagPlayerNode(Node):
         self.t_first_sent: float | None = None  # wall clock of the first frame published
         self.t_last_body: float | None = None  # wall clock of the newest body received
         self.next_frame = None
-        self.timer = self.create_timer(0.002, self.tick)
+        # Event-driven: a frame goes out when its body has come back (lockstep, on_body) or
+        # when it is due (free-running, the pacer); the timer only waits for the graph and
+        # watches the timeouts.
+        self.pacer = Pacer(self, self._play)
+        self.timer = self.create_timer(HOUSEKEEPING_S, self.tick)
         self.get_logger().info(f"playing {p['bag']} ({len(self.names)} cameras, lockstep={self.lockstep})")
 
     def _load_extra(self, topics: list[str]) -> dict:
@@ -120,8 +127,11 @@ class BagPlayerNode(Node):
         return out
 
     def on_body(self, msg) -> None:
-        self.bodies_seen.add(ns_from_time(msg.header.stamp))
+        stamp = ns_from_time(msg.header.stamp)
+        self.bodies_seen.add(stamp)
         self.t_last_body = time.monotonic()
+        if self.state == "wait_body" and stamp == self.waiting_for:
+            self._next_frame()  # lockstep: the loop has closed, the next frame goes out at once
 
     def _missing_nodes(self) -> list[str]:
         """The names of ``wait_for_nodes`` not (yet) in the ROS graph, this node's own excepted."""
@@ -155,6 +165,7 @@ class BagPlayerNode(Node):
         return self.next_frame is not None
 
     def tick(self) -> None:
+        """Housekeeping: start once the graph is there, a lockstep frame's timeout, the end."""
         now = time.monotonic()
         if self.state == "wait_graph":
             if self._graph_ready() or now - self.t_state > float(self.p["start_timeout_s"]):
@@ -164,35 +175,12 @@ class BagPlayerNode(Node):
                                               + (f" (no node {', '.join(missing)})" if missing else "")
                                               + "; playing anyway")
                 time.sleep(0.5)  # let late discovery of the remaining endpoints settle
-                self.state = "play" if self._advance() else "linger"
-                self.t_state = time.monotonic()
+                self._next_frame()
             return
         if self.state == "wait_body":
-            if self.waiting_for in self.bodies_seen or now - self.t_state > float(self.p["frame_timeout_s"]):
-                if self.waiting_for not in self.bodies_seen:
-                    self.get_logger().warning(f"no body for frame {self.waiting_for}; going on")
-                self.state = "play" if self._advance() else "linger"
-                self.t_state = now
-            return
-        if self.state == "play":
-            stamp, images = self.next_frame
-            if not self.lockstep:
-                if self.t0_wall is None:
-                    self.t0_wall, self.t0_stamp = now, stamp
-                due = self.t0_wall + (stamp - self.t0_stamp) * 1e-9 / float(self.p["rate"])
-                if now < due:
-                    return
-            for pub, data in self.extra.pop(stamp, []):
-                pub.publish(data)  # serialised CDR, as recorded
-            self.pubs.publish_images(stamp, {n: images[n] for n in self.names if n in images})
-            self.sent += 1
-            self.last_stamp = stamp
-            if self.t_first_sent is None:
-                self.t_first_sent = now
-            if self.lockstep:
-                self.waiting_for, self.state, self.t_state = stamp, "wait_body", now
-            elif not self._advance():
-                self.state, self.t_state = "linger", now
+            if now - self.t_state > float(self.p["frame_timeout_s"]):
+                self.get_logger().warning(f"no body for frame {self.waiting_for}; going on")
+                self._next_frame()
             return
         if self.state == "linger":
             caught_up = bool(self.linger_for) and all(self.last_stamp in seen for seen in self.linger_for.values())
@@ -203,6 +191,43 @@ class BagPlayerNode(Node):
                 self.get_logger().info(f"done: {self.sent} frames; {self._throughput()}")
                 raise SystemExit(0)
 
+    def _next_frame(self) -> None:
+        """Take the next frame and play it (lockstep: now; free-running: when due), or linger."""
+        self.state = "play" if self._advance() else "linger"
+        self.t_state = time.monotonic()
+        if self.state == "play":
+            self._play()
+
+    def _play(self) -> None:
+        """Publish the pending frame (free-running: once it is due; then the pacer wakes this
+        for the next one)."""
+        if self.state != "play":
+            return
+        now = time.monotonic()
+        stamp, images = self.next_frame
+        if not self.lockstep:
+            if self.t0_wall is None:
+                self.t0_wall, self.t0_stamp = now, stamp
+            if now < self._due(stamp):
+                self.pacer.arm(self._due(stamp) - now)
+                return
+        for pub, data in self.extra.pop(stamp, []):
+            pub.publish(data)  # serialised CDR, as recorded
+        self.pubs.publish_images(stamp, {n: images[n] for n in self.names if n in images})
+        self.sent += 1
+        self.last_stamp = stamp
+        if self.t_first_sent is None:
+            self.t_first_sent = now
+        if self.lockstep:
+            self.waiting_for, self.state, self.t_state = stamp, "wait_body", now
+        elif not self._advance():
+            self.state, self.t_state = "linger", now
+        else:  # one frame per call: the executor serves the bodies in between
+            self.pacer.arm(max(0.0, self._due(self.next_frame[0]) - time.monotonic()))
+
+    def _due(self, stamp: int) -> float:
+        """Free-running: the monotonic time at which the frame stamped ``stamp`` (ns) goes out."""
+        return self.t0_wall + (stamp - self.t0_stamp) * 1e-9 / float(self.p["rate"])
 
     def _throughput(self) -> str:
         """Closed-loop throughput: bodies received per second of wall clock, from the first

@@ -18,7 +18,7 @@ from artrack.cameras import load_calibration
 from artrack.errors import InputError
 from artrack.video import open_videos
 
-from .common import CameraPublishers, declare_all, run_node
+from .common import CameraPublishers, Pacer, declare_all, run_node
 
 PARAMS = [
     ("videos", [""], "video files, one per camera, in the order of camera_names"),
@@ -63,7 +63,8 @@ class CameraIngestNode(Node):
         self.pubs = CameraPublishers(self, cameras, reliable_images=False)
         self.t0 = None
         self.next = next(self.frames, None)
-        self.create_timer(0.002, self.tick)
+        self.pacer = Pacer(self, self.tick)  # woken when the next frame is due, not polled
+        self.pacer.arm(0.0)
 
     @staticmethod
     def _device_frames(index: int, name: str, fps: float):
@@ -79,16 +80,24 @@ class CameraIngestNode(Node):
             i += 1
 
     def tick(self) -> None:
+        """Publish the next frame if it is due, then sleep (the pacer) until the one after is
+        (one frame per call: the executor serves its other callbacks in between)."""
         if self.next is None:
             raise SystemExit(0)
         stamp, images = self.next
         now = time.monotonic()
         if self.t0 is None:
             self.t0 = (now, stamp)
-        if now < self.t0[0] + (stamp - self.t0[1]) * 1e-9 / self.rate:
-            return
-        self.pubs.publish_images(stamp, images)
-        self.next = next(self.frames, None)
+        if now >= self._due(stamp):
+            self.pubs.publish_images(stamp, images)
+            self.next = next(self.frames, None)
+            if self.next is None:
+                raise SystemExit(0)
+        self.pacer.arm(max(0.0, self._due(self.next[0]) - time.monotonic()))
+
+    def _due(self, stamp: int) -> float:
+        """Monotonic time at which the frame stamped ``stamp`` (ns) goes out."""
+        return self.t0[0] + (stamp - self.t0[1]) * 1e-9 / self.rate
 
 
 def main(args=None) -> None:
