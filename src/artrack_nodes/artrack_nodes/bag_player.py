@@ -93,6 +93,8 @@ class BagPlayerNode(Node):
         self.t0_wall = self.t0_stamp = None
         self.t_first_sent: float | None = None  # wall clock of the first frame published
         self.t_last_body: float | None = None  # wall clock of the newest body received
+        self.sent_at: dict[int, float] = {}  # frame stamp -> wall clock it was sent
+        self.latency_s: list[float] = []  # from sending a frame to receiving its body
         self.next_frame = None
         # Event-driven: a frame goes out when its body has come back (lockstep, on_body) or
         # when it is due (free-running, the pacer); the timer only waits for the graph and
@@ -128,8 +130,10 @@ class BagPlayerNode(Node):
 
     def on_body(self, msg) -> None:
         stamp = ns_from_time(msg.header.stamp)
-        self.bodies_seen.add(stamp)
         self.t_last_body = time.monotonic()
+        if stamp in self.sent_at and stamp not in self.bodies_seen:
+            self.latency_s.append(self.t_last_body - self.sent_at[stamp])
+        self.bodies_seen.add(stamp)
         if self.state == "wait_body" and stamp == self.waiting_for:
             self._next_frame()  # lockstep: the loop has closed, the next frame goes out at once
 
@@ -216,6 +220,7 @@ class BagPlayerNode(Node):
         self.pubs.publish_images(stamp, {n: images[n] for n in self.names if n in images})
         self.sent += 1
         self.last_stamp = stamp
+        self.sent_at[stamp] = now
         if self.t_first_sent is None:
             self.t_first_sent = now
         if self.lockstep:
@@ -231,12 +236,16 @@ class BagPlayerNode(Node):
 
     def _throughput(self) -> str:
         """Closed-loop throughput: bodies received per second of wall clock, from the first
-        frame sent to the last body received (lockstep: one frame in flight at a time)."""
+        frame sent to the last body received (lockstep: one frame in flight at a time); with
+        the share of frames that got a body and the latency from sending a frame to its body."""
         n = len(self.bodies_seen)
         if self.t_first_sent is None or self.t_last_body is None or n == 0:
             return "no body came back"
         span = max(self.t_last_body - self.t_first_sent, 1e-9)
-        return f"{n} bodies in {span:.1f} s: {n / span:.2f} frames per second (closed loop)"
+        lat = sorted(self.latency_s)
+        latency = (f"; {len(lat)} of {self.sent} frames got a body, {1e3 * lat[len(lat) // 2]:.0f} ms "
+                   f"(median) and {1e3 * lat[-1]:.0f} ms (max) after they were sent") if lat else ""
+        return f"{n} bodies in {span:.1f} s: {n / span:.2f} frames per second (closed loop){latency}"
 
 
 def main(args=None) -> None:

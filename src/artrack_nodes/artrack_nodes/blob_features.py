@@ -27,6 +27,7 @@ from .common import (
     camera_topic,
     declare_all,
     msgs,
+    received_ns,
     run_node,
 )
 
@@ -37,10 +38,12 @@ PARAMS = [
                  "(priors only label the start-up blobs)"),
     ("fps", 30.0, "nominal frame rate, Hz (prior-to-frame matching tolerance is half a frame)"),
     ("prior_timeout_s", 10.0, "lockstep: give up waiting for a prior after this long, s"),
+    ("loop_wait_s", 0.5, "free-running: after a frame, wait up to this long for the skeleton's prior from it "
+                         "before taking the newest image without one, s (0: every image as it comes)"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
     ("blob_config", "", "blob tracker tunables YAML (empty: config/blob_features.yaml)"),
 ]
-LIMITS = {"fps": (1.0, 1000.0), "prior_timeout_s": (0.0, 3600.0)}
+LIMITS = {"fps": (1.0, 1000.0), "prior_timeout_s": (0.0, 3600.0), "loop_wait_s": (0.0, 60.0)}
 #: run-time changeable (ros2 param set): feedback on/off, the lockstep prior timeout
 RUNTIME = ("feedback", "prior_timeout_s")
 
@@ -62,27 +65,28 @@ class BlobFeaturesNode(Node):
                                  self.on_image, IMAGE_QOS_RELIABLE if self.lockstep else IMAGE_QOS_SENSOR)
         self.create_subscription(f.cls("artrack_msgs/msg/BlobPrior2DArray"), camera_topic(self.camera, "blob_priors"),
                                  self.on_priors, RESULT_QOS)
-        self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.prior_timeout_s, "prior")
+        self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.prior_timeout_s, "prior",
+                                loop_wait_s=float(p["loop_wait_s"]))
         self.frames = 0
         self.diag = NodeDiagnostics(self, update=lambda d: d.set("images_skipped", self.queue.skipped))
         self.diag.set("prior_staleness_s", float("nan"))
         self.create_timer(0.1, self.process_queue)
         self.get_logger().info(f"blob_features for {self.camera} (lockstep={self.lockstep})")
 
-    def on_image(self, msg) -> None:
+    def on_image(self, msg, info) -> None:
         self.diag.input()
-        if self.queue.add_image_msg(msg, camera_topic(self.camera, "image_raw")):
+        if self.queue.add_image_msg(msg, camera_topic(self.camera, "image_raw"), received_ns(info)):
             self.process_queue()
         else:
             self.diag.drop()
 
-    def on_priors(self, msg) -> None:
+    def on_priors(self, msg, info) -> None:
         try:
             stamp, _, priors = priors_from_msg(msg)
         except (ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad prior message on {camera_topic(self.camera, 'blob_priors')}: {exc}")
             return
-        self.queue.add_input(stamp, priors)
+        self.queue.add_input(stamp, priors, received_ns(info))
         self.process_queue()
 
     def process_queue(self) -> None:

@@ -413,66 +413,120 @@ class CameraRigListener:
         return [camera_from_msgs(n, self.info[n], self.extr[n]) for n in self.names]
 
 
+def received_ns(info: Any) -> int:
+    """When DDS received a message, ns, from the MessageInfo of a two-argument subscription
+    callback (rclpy gives a dict); 0 if unknown."""
+    try:
+        return int(info["received_timestamp"] or 0)
+    except (TypeError, KeyError, ValueError):
+        return 0
+
+
 class FrameQueue:
     """Images waiting for the per-frame input that belongs to them (blob_features: the priors
     predicting the frame; edge_features: the predicted body of the frame).
 
     Lockstep: every image after the first waits for the input stamped within half a frame of
-    it (or ``timeout_s``, then goes on without); free-running: only the newest image is
-    processed, with the newest input not after it. Inputs are kept for the last ``keep`` stamps.
+    it (or ``timeout_s``, then goes on without). Free-running: only the newest image is
+    processed, with the input nearest to it in time; and, with ``loop_wait_s`` > 0, only once
+    the loop has closed since the last processed frame (an input stamped after that frame: the
+    skeleton's prediction from it) or ``loop_wait_s`` has passed. The graph then runs at the
+    rate of its own loop on the newest images, every 2-D step with the prediction of the step
+    before, instead of spending the CPU on frames whose priors are stale and whose blobs the
+    skeleton, behind, would drop (ALGORITHMS.md §1, the closed loop, in real time). The image
+    taken when the loop closes is the newest that had arrived before the input that closed it
+    (DDS receive times, ``received_ns``), not the newest by the time this node gets the CPU: so
+    every camera's node takes the same frame, also when they run one after another on fewer
+    cores than cameras. Inputs are kept for the last ``keep`` stamps.
     """
 
-    def __init__(self, node: Node, lockstep: bool, fps: float, timeout_s: float, what: str, keep: int = 8):
+    def __init__(self, node: Node, lockstep: bool, fps: float, timeout_s: float, what: str, keep: int = 8,
+                 loop_wait_s: float = 0.0, clock_ns: Callable[[], int] = time.time_ns):
         self.node = node
         self.lockstep = lockstep
         self.tol_ns = int(0.5e9 / fps)
         self.timeout_s = timeout_s
+        self.loop_wait_s = loop_wait_s
         self.what = what
         self.keep = keep
         self.inputs: dict[int, Any] = {}
+        self.input_received: dict[int, int] = {}  # input stamp -> DDS receive time, ns (0: unknown)
         self.images: deque = deque()
         self.skipped = 0  # free-running: images dropped for a newer one (diagnostics)
+        self.clock_ns = clock_ns  # the clock of DDS's receive times (system time, ns)
+        self.last_stamp: int | None = None  # free-running: the stamp of the last image processed ...
+        self.last_time = 0.0  # ... and when (monotonic s) ...
+        self.last_pick_ns = 0  # ... (clock_ns)
 
-    def add_input(self, stamp_ns: int, value: Any) -> None:
+    def add_input(self, stamp_ns: int, value: Any, received_ns: int = 0) -> None:
+        """received_ns: when DDS received it (``received_ns(info)``; 0: unknown)."""
         self.inputs[stamp_ns] = value
+        self.input_received[stamp_ns] = received_ns
         for old in sorted(self.inputs)[:-self.keep]:
             del self.inputs[old]
+            del self.input_received[old]
 
-    def add_image_msg(self, msg: Any, topic: str) -> bool:
+    def add_image_msg(self, msg: Any, topic: str, received_ns: int = 0) -> bool:
         """Queue a sensor_msgs/Image as BGR; a bad one is logged (naming ``topic`` and the field)
-        and dropped. Returns whether it was queued."""
+        and dropped. Returns whether it was queued. received_ns: as for :meth:`add_input`."""
         try:
             image = bgr_from_image_msg(msg, topic)
         except ValueError as exc:
             self.node.get_logger().error(f"dropped bad image: {exc}")
             return False
-        self.images.append((ns_from_time(msg.header.stamp), image, time.monotonic()))
+        self.images.append((ns_from_time(msg.header.stamp), image, time.monotonic(), received_ns))
         return True
 
     def input_for(self, stamp_ns: int) -> tuple[int, Any] | None:
-        """Lockstep: the input of this frame; free-running: the newest not after it."""
+        """Lockstep: the input of this frame; free-running: the one nearest to it in time (ties:
+        the earlier)."""
         if self.lockstep:
             for s, value in self.inputs.items():
                 if abs(s - stamp_ns) <= self.tol_ns:
                     return s, value
             return None
-        older = [s for s in self.inputs if s <= stamp_ns + self.tol_ns]
-        return (max(older), self.inputs[max(older)]) if older else None
+        if not self.inputs:
+            return None
+        best = min(self.inputs, key=lambda s: (abs(s - stamp_ns), s))
+        return best, self.inputs[best]
+
+    def _free_running_pick(self) -> int | None:
+        """Free-running: the index in ``images`` of the image to process now, or None to wait
+        (see the class docstring)."""
+        newest = len(self.images) - 1
+        if self.loop_wait_s <= 0 or self.last_stamp is None:
+            return newest
+        # the loop closes with an input stamped after the last frame (its prediction) that came after it
+        closing = [r for s, r in self.input_received.items()
+                   if s > self.last_stamp and (r == 0 or r > self.last_pick_ns)]
+        if not closing:
+            return newest if time.monotonic() - self.last_time >= self.loop_wait_s else None
+        closed_at = min(closing)
+        if not closed_at:
+            return newest  # receive times unknown
+        before = [i for i, im in enumerate(self.images) if 0 < im[3] <= closed_at]
+        return before[-1] if before else 0  # else the first image to arrive after it
 
     def ready(self, first: Callable[[], bool]) -> Iterator[tuple[int, Any, tuple[int, Any] | None]]:
         """Yield (stamp, image, (input stamp, input) or None) for every image that may be processed
         now, in order; ``first()`` tells whether no frame has been processed yet (it has no input)."""
         while self.images:
-            stamp, image, arrived = self.images[0]
+            stamp, image, arrived, _ = self.images[0]
+            if not self.lockstep:  # free-running: the newest image, once the loop closed
+                pick = len(self.images) - 1 if first() else self._free_running_pick()
+                if pick is None:
+                    return
+                for _ in range(pick):
+                    self.images.popleft()
+                    self.skipped += 1
+                stamp, image, arrived, _ = self.images.popleft()
+                self.last_stamp, self.last_time, self.last_pick_ns = stamp, time.monotonic(), self.clock_ns()
+                yield stamp, image, (None if first() else self.input_for(stamp))
+                continue
             found = self.input_for(stamp)
-            if self.lockstep and not first() and found is None:
+            if not first() and found is None:
                 if time.monotonic() - arrived < self.timeout_s:
                     return
                 self.node.get_logger().warning(f"no {self.what} for frame {stamp} after {self.timeout_s}s; going on")
             self.images.popleft()
-            if not self.lockstep:  # free-running: only the newest image matters
-                while self.images:
-                    stamp, image, arrived = self.images.popleft()
-                    self.skipped += 1
-                found = self.input_for(stamp)
             yield stamp, image, (None if first() else found)

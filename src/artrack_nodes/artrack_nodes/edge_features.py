@@ -36,6 +36,7 @@ from .common import (
     camera_topic,
     declare_all,
     msgs,
+    received_ns,
     run_node,
 )
 
@@ -44,10 +45,12 @@ PARAMS = [
     ("lockstep", False, "wait for the prediction of each frame (reproducible replay); reliable image QoS"),
     ("fps", 30.0, "nominal frame rate, Hz (prediction-to-frame matching tolerance is half a frame)"),
     ("prediction_timeout_s", 10.0, "lockstep: give up waiting for a prediction after this long, s"),
+    ("loop_wait_s", 0.5, "free-running: after a frame, wait up to this long for the skeleton's prediction from it "
+                         "before taking the newest image without one, s (0: every image as it comes)"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
     ("edge_config", "", "edge tracker tunables YAML (empty: config/edge_features.yaml)"),
 ]
-LIMITS = {"fps": (1.0, 1000.0), "prediction_timeout_s": (0.0, 3600.0)}
+LIMITS = {"fps": (1.0, 1000.0), "prediction_timeout_s": (0.0, 3600.0), "loop_wait_s": (0.0, 60.0)}
 RUNTIME = ("prediction_timeout_s",)
 
 
@@ -70,7 +73,8 @@ class EdgeFeaturesNode(Node):
                                  self.on_image, IMAGE_QOS_RELIABLE if self.lockstep else IMAGE_QOS_SENSOR)
         self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), PREDICTION_TOPIC, self.on_prediction,
                                  RESULT_QOS)
-        self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.timeout_s, "prediction")
+        self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.timeout_s, "prediction",
+                                loop_wait_s=float(p["loop_wait_s"]))
         self.frames = 0
         self.diag = NodeDiagnostics(self, update=lambda d: d.set("images_skipped", self.queue.skipped))
         self.diag.set("prediction_staleness_s", float("nan"))
@@ -81,14 +85,14 @@ class EdgeFeaturesNode(Node):
         self.stage = EdgeStage(cameras[0], self.body, self.edge_config)
         self.process_queue()
 
-    def on_image(self, msg) -> None:
+    def on_image(self, msg, info) -> None:
         self.diag.input()
-        if self.queue.add_image_msg(msg, camera_topic(self.camera, "image_raw")):
+        if self.queue.add_image_msg(msg, camera_topic(self.camera, "image_raw"), received_ns(info)):
             self.process_queue()
         else:
             self.diag.drop()
 
-    def on_prediction(self, msg) -> None:
+    def on_prediction(self, msg, info) -> None:
         try:
             body = body_from_msg(msg)
             poses = link_poses(body)
@@ -97,7 +101,7 @@ class EdgeFeaturesNode(Node):
         except (ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad prediction on {PREDICTION_TOPIC}: {exc}")
             return
-        self.queue.add_input(body.stamp_ns, (poses, body.status))
+        self.queue.add_input(body.stamp_ns, (poses, body.status), received_ns(info))
         self.process_queue()
 
     def process_queue(self) -> None:

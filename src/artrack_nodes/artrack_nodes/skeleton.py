@@ -4,7 +4,8 @@ virtual-work constraint solver; or the triangulate-and-fit baseline).
 Subscribes every camera's /cameras/<cam>/blobs (plus camera_info and
 extrinsics) and, with ``edges`` on, /cameras/<cam>/edge_statistics (edge_features
 nodes; fused as soft constraints on the links, ALGORITHMS.md §2 "Fusion"). Once all
-cameras have reported a frame (or, free-running, after sync_timeout_s) it publishes
+cameras have reported a frame (or, free-running, after sync_timeout_s; there a frame
+older than a complete one is dropped, so the node estimates the newest) it publishes
 /artrack/body (the estimate at that frame) and /artrack/prediction (the body predicted
 for the next frame, which feedback_projection turns into 2-D priors and edge_features
 measures about). With ``reseed_topic`` set (e.g. /artrack/loose_limbed/body, the loose_limbed
@@ -48,7 +49,8 @@ PARAMS = [
     ("estimator", "baseline", "baseline (raw triangulate-and-fit) | kinematic | dynamic"),
     ("fps", 30.0, "nominal frame rate, Hz (first prediction interval)"),
     ("lockstep", False, "wait for every camera's blobs of a frame (up to lockstep_timeout_s)"),
-    ("sync_timeout_s", 0.1, "free-running: process a frame with the cameras that reported after this long, s"),
+    ("sync_timeout_s", 0.1, "free-running: process a frame with the cameras that reported after this long, s "
+                                 "(one older than a complete frame is dropped at once)"),
     ("lockstep_timeout_s", 30.0, "lockstep: process a frame with the cameras that reported after this long (a dead "
                                  "camera node must not stall the graph), s; 0 = wait for ever"),
     ("body_id", 0, "id published in TrackedBody.body_id"),
@@ -83,6 +85,7 @@ class SkeletonNode(Node):
         self.pending_edges: dict[int, dict] = {}
         self.first_seen: dict[int, float] = {}
         self.last_done = -1
+        self.skipped = 0  # free-running: frames dropped for a newer complete one (diagnostics)
         self.reseed_seen = -1  # newest frame stamp heard on reseed_topic
         f = msgs()
         body_cls = f.cls("artrack_msgs/msg/TrackedBody")
@@ -99,7 +102,13 @@ class SkeletonNode(Node):
             self.create_subscription(body_cls, p["reseed_topic"], self.on_reseed, RESEED_QOS)
         self.create_timer(0.02, self.flush)
         self.watch = CameraWatch(self.names, float(p["fps"]))
-        self.diag = NodeDiagnostics(self, update=self.watch.report(self))
+        watch_report = self.watch.report(self)
+
+        def report(diag) -> None:
+            watch_report(diag)
+            diag.set("frames_skipped", self.skipped)
+
+        self.diag = NodeDiagnostics(self, update=report)
         self.get_logger().info(f"skeleton ({p['estimator']}{', edges' if self.edges else ''}) over {self.names}, "
                                f"lockstep={self.lockstep}")
 
@@ -172,6 +181,15 @@ class SkeletonNode(Node):
         if self.stage is None:
             return
         now = time.monotonic()
+        if not self.lockstep:
+            # Free-running: the newest complete frame is the one to estimate; older frames still
+            # pending (a camera's blobs missing, or the node behind) are dropped, not estimated late.
+            complete = [s for s in self.pending if self._complete(s)]
+            for stamp in [s for s in self.pending if complete and s < max(complete)]:
+                del self.pending[stamp]
+                del self.first_seen[stamp]
+                self.pending_edges.pop(stamp, None)
+                self.skipped += 1
         for stamp in sorted(self.pending):
             got = self.pending[stamp]
             complete = self._complete(stamp)
