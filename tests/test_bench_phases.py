@@ -171,3 +171,18 @@ def test_body_option_refuses_a_model_with_other_joints(tmp_path):
     assert res.returncode == 2
     assert "joints differ" in res.stderr.strip().splitlines()[-1]
     assert not (tmp_path / "cache").exists()
+
+
+def test_live_graph_bench_reads_the_players_closing_line():
+    """bench/live_graph.py parses bag_player's closing line (its format: bag_player._throughput)."""
+    path = Path(__file__).resolve().parents[1] / "bench" / "live_graph.py"
+    spec = importlib.util.spec_from_file_location("bench_live_graph", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    line = ("[INFO] [1.2] [bag_player]: done: 100 frames; 47 bodies in 6.8 s: 6.92 frames per second (closed loop); "
+            "47 of 100 frames got a body, 190 ms (median) and 377 ms (max) after they were sent")
+    assert bench.parse_player_log(line) == {"frames_sent": 100, "bodies": 47, "bodies_per_s": 6.92,
+                                            "latency_median_ms": 190, "latency_max_ms": 377}
+    assert bench.parse_player_log("done: 75 frames; no body came back")["bodies"] == 0
+    with pytest.raises(ValueError, match="bag_player.log"):
+        bench.parse_player_log("playing bags/x.mcap")
