@@ -124,6 +124,18 @@ def test_skeleton_survives_camera_loss_late_bad_input_and_restart(env, probe, tm
     assert "Traceback" not in log.read_text()
 
 
+def _play_to_the_end(executor, cmd: list[str], env) -> tuple[int, str]:
+    """Run a bag_player to its end while the probe's executor spins; (exit status, its output)."""
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        spin_until(executor, lambda: proc.poll() is not None, 120)
+        output = proc.communicate(timeout=10)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, output
+
+
 def test_bag_player_plays_a_truncated_bag_up_to_the_damage(env, probe, tmp_path, small_scene):
     from artrack.bags import open_bag
 
@@ -154,15 +166,8 @@ def test_bag_player_plays_a_truncated_bag_up_to_the_damage(env, probe, tmp_path,
     refused = subprocess.run(base, env=env, capture_output=True, text=True, timeout=60)
     assert refused.returncode == 1 and "truncated" in refused.stderr and "Traceback" not in refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
-    proc = subprocess.Popen([*base, "-p", "allow_truncated:=true"], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    try:
-        spin_until(executor, lambda: proc.poll() is not None, 120)
-        output = proc.communicate(timeout=10)[0]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0, output
+    returncode, output = _play_to_the_end(executor, [*base, "-p", "allow_truncated:=true"], env)
+    assert returncode == 0, output
     assert "playing the frames before the damage" in output
     assert len(got) == len(set(got)) == readable, f"{len(set(got))} of the {readable} readable frames were played"
 
@@ -177,17 +182,11 @@ def test_free_running_bag_player_paces_every_frame_out_in_order(env, probe, smal
     got: list[int] = []
     node.create_subscription(f.cls("sensor_msgs/msg/Image"), "/cameras/cam01/image_raw",
                              lambda m: got.append(ns_from_time(m.header.stamp)), IMAGE_QOS_SENSOR)
-    proc = subprocess.Popen([str(NODE_BIN / "bag_player"), "--ros-args", "-p", f"bag:={small_scene}",
-                             "-p", "lockstep:=false", "-p", "rate:=2.0", "-p", "cameras:=[cam01]",
-                             "-p", "start_timeout_s:=20.0", "-p", "linger_s:=0.2"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        spin_until(executor, lambda: proc.poll() is not None, 120)
-        output = proc.communicate(timeout=10)[0]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0, output
+    returncode, output = _play_to_the_end(
+        executor, [str(NODE_BIN / "bag_player"), "--ros-args", "-p", f"bag:={small_scene}", "-p", "lockstep:=false",
+                   "-p", "rate:=2.0", "-p", "cameras:=[cam01]", "-p", "start_timeout_s:=20.0", "-p", "linger_s:=0.2"],
+        env)
+    assert returncode == 0, output
     assert "done: 75 frames" in output and "Traceback" not in output, output
     from artrack.bags import read_scene
 
