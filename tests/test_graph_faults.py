@@ -108,6 +108,15 @@ def test_skeleton_survives_camera_loss_late_bad_input_and_restart(env, probe, tm
                            and logged(f"for frame {(frame[0] - 1) * FRAME_NS}"), 10), log.read_text()
         s3 = play(["camA", "camB"], 5)
         assert spin_until(executor, lambda: published_since(s3) >= 4, 10), "still publishing after bad input"
+        # a frame older than a complete one is dropped (free-running keeps the newest), not estimated late
+        k = frame[0]
+        blobs["camA"].publish(blob_array_msg(f, (k + 1) * FRAME_NS, "camA", "camA_optical_frame", []))
+        for n in ("camA", "camB"):
+            blobs[n].publish(blob_array_msg(f, (k + 2) * FRAME_NS, n, f"{n}_optical_frame", []))
+        frame[0] += 2
+        assert spin_until(executor, lambda: (k + 2) * FRAME_NS in bodies, 10), log.read_text()
+        spin_until(executor, lambda: False, 0.5)
+        assert (k + 1) * FRAME_NS not in bodies, "an incomplete older frame was estimated after a newer one"
         assert proc.poll() is None, f"skeleton died:\n{log.read_text()}"
         # killed mid-run and restarted: re-synchronises from the latched calibration
         proc.kill()
