@@ -147,6 +147,24 @@ def test_tf_message_fields():
     assert first.transform.rotation.w == pytest.approx(1.0)
 
 
+def test_batched_quaternions_equal_one_by_one():
+    """tf_message and pose_array convert all rotations in one scipy call: the same values, bit for bit,
+    as FrameTransform.quaternion / Rotation.from_matrix per transform and link."""
+    body = load_body_model()
+    rng = np.random.default_rng(4)
+    theta = body.rest_pose() + rng.normal(0.0, 0.3, body.n_dof) * (np.arange(body.n_dof) >= 6)
+    est = estimate_at(body, np.clip(theta, body.lower, body.upper))
+    tfs = BodyFrames(body, "0").transforms(est, "world")
+    msg = tf_message(plain_factory(), tfs, est.stamp_ns)
+    for tf, m in zip(tfs, msg.transforms, strict=True):
+        r = m.transform.rotation
+        assert np.array_equal([r.x, r.y, r.z, r.w], tf.quaternion())
+    poses = MarkerBuilder(plain_factory(), body).pose_array(est, "world").poses
+    for lk, pose in zip(est.links, poses, strict=True):
+        o = pose.orientation
+        assert np.array_equal([o.x, o.y, o.z, o.w], Rotation.from_matrix(lk.rotation).as_quat())
+
+
 def test_ellipsoid_reproduces_the_covariance():
     rng = np.random.default_rng(0)
     A = rng.normal(size=(3, 3))

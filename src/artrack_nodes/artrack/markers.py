@@ -55,8 +55,10 @@ class MarkerBuilder:
     def _color(self, r, g, b, a=1.0):
         return self.f("std_msgs/msg/ColorRGBA", r=float(r), g=float(g), b=float(b), a=float(a))
 
-    def _pose(self, p=(0.0, 0.0, 0.0), R=None):
-        q = Rotation.from_matrix(R).as_quat() if R is not None else np.array([0.0, 0.0, 0.0, 1.0])
+    def _pose(self, p=(0.0, 0.0, 0.0), R=None, q=None):
+        """geometry_msgs/Pose at p with rotation R, or with its quaternion q (x, y, z, w) if given."""
+        if q is None:
+            q = Rotation.from_matrix(R).as_quat() if R is not None else np.array([0.0, 0.0, 0.0, 1.0])
         return self.f("geometry_msgs/msg/Pose", position=self._point(p),
                       orientation=self.f("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]))
 
@@ -111,5 +113,7 @@ class MarkerBuilder:
 
     def pose_array(self, est: BodyEstimate, frame_id: str):
         """geometry_msgs/PoseArray of the link frames (body-model link order, finite ones)."""
-        poses = [self._pose(lk.position, lk.rotation) for lk in est.links if all_finite(lk.position, lk.rotation)]
+        links = [lk for lk in est.links if all_finite(lk.position, lk.rotation)]
+        quats = Rotation.from_matrix(np.stack([lk.rotation for lk in links])).as_quat() if links else []
+        poses = [self._pose(lk.position, q=q) for lk, q in zip(links, quats, strict=True)]
         return self.f("geometry_msgs/msg/PoseArray", header=header_msg(self.f, est.stamp_ns, frame_id), poses=poses)
