@@ -56,7 +56,7 @@ LIMITS = {"rate": (0.01, 100.0), "start_timeout_s": (0.0, 3600.0), "frame_timeou
           "max_frames": (0, 2**31 - 1), "linger_s": (0.0, 3600.0)}
 RUNTIME = ("rate", "frame_timeout_s", "linger_s")  # read from self.p on every tick
 #: period of the housekeeping timer (graph discovery, timeouts, lingering), s
-HOUSEKEEPING_S = 0.05
+HOUSEKEEPING_S = 0.1
 
 
 class BagPlayerNode(Node):
