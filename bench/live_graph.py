@@ -20,7 +20,8 @@ line: one record per run. Run from the repository root, after ``. scripts/env.sh
 
     python bench/live_graph.py                                  # the make-demo bag at 15 frames/s
     python bench/live_graph.py --rates 0.25 0.5 --loop-wait 0.5 0.0
-    python bench/live_graph.py --bag bags/demo.mcap --fps 30 --rates 1.0 --synthetic
+    python bench/live_graph.py --bag scene.mcap --fps 30 --rates 1.0 --synthetic \
+        --blob-config "" --skeleton-config "" --body-model ""       # artrack synth's scene, the defaults
 """
 
 from __future__ import annotations
