@@ -90,7 +90,6 @@ class BagPlayerNode(Node):
         self.sent = 0
         self.waiting_for: int | None = None
         self.bodies_seen: set[int] = set()
-        self.t0_wall = self.t0_stamp = None
         self.t_first_sent: float | None = None  # wall clock of the first frame published
         self.t_last_body: float | None = None  # wall clock of the newest body received
         self.sent_at: dict[int, float] = {}  # frame stamp -> wall clock it was sent
@@ -210,10 +209,9 @@ class BagPlayerNode(Node):
         now = time.monotonic()
         stamp, images = self.next_frame
         if not self.lockstep:
-            if self.t0_wall is None:
-                self.t0_wall, self.t0_stamp = now, stamp
-            if now < self._due(stamp):
-                self.pacer.arm(self._due(stamp) - now)
+            wait = self.pacer.due_in(stamp, float(self.p["rate"]))
+            if wait > 0:
+                self.pacer.arm(wait)
                 return
         for pub, data in self.extra.pop(stamp, []):
             pub.publish(data)  # serialised CDR, as recorded
@@ -228,11 +226,7 @@ class BagPlayerNode(Node):
         elif not self._advance():
             self.state, self.t_state = "linger", now
         else:  # one frame per call: the executor serves the bodies in between
-            self.pacer.arm(max(0.0, self._due(self.next_frame[0]) - time.monotonic()))
-
-    def _due(self, stamp: int) -> float:
-        """Free-running: the monotonic time at which the frame stamped ``stamp`` (ns) goes out."""
-        return self.t0_wall + (stamp - self.t0_stamp) * 1e-9 / float(self.p["rate"])
+            self.pacer.arm(max(0.0, self.pacer.due_in(self.next_frame[0], float(self.p["rate"]))))
 
     def _throughput(self) -> str:
         """Closed-loop throughput: bodies received per second of wall clock, from the first

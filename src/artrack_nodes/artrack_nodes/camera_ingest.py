@@ -8,7 +8,6 @@ checked against the calibration; a mismatch is one clear error and exit 1.
 from __future__ import annotations
 
 import sys
-import time
 
 import cv2
 from rclpy.node import Node
@@ -61,7 +60,6 @@ class CameraIngestNode(Node):
                 cameras = list(video_set.cameras)  # scaled to the working resolution
                 self.frames = ((stamp, images) for _, stamp, images in video_set)
         self.pubs = CameraPublishers(self, cameras, reliable_images=False)
-        self.t0 = None
         self.next = next(self.frames, None)
         self.pacer = Pacer(self, self.tick)  # woken when the next frame is due, not polled
         self.pacer.arm(0.0)
@@ -85,19 +83,12 @@ class CameraIngestNode(Node):
         if self.next is None:
             raise SystemExit(0)
         stamp, images = self.next
-        now = time.monotonic()
-        if self.t0 is None:
-            self.t0 = (now, stamp)
-        if now >= self._due(stamp):
+        if self.pacer.due_in(stamp, self.rate) <= 0:
             self.pubs.publish_images(stamp, images)
             self.next = next(self.frames, None)
             if self.next is None:
                 raise SystemExit(0)
-        self.pacer.arm(max(0.0, self._due(self.next[0]) - time.monotonic()))
-
-    def _due(self, stamp: int) -> float:
-        """Monotonic time at which the frame stamped ``stamp`` (ns) goes out."""
-        return self.t0[0] + (stamp - self.t0[1]) * 1e-9 / self.rate
+        self.pacer.arm(max(0.0, self.pacer.due_in(self.next[0], self.rate)))
 
 
 def main(args=None) -> None:

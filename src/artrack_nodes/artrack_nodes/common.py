@@ -308,7 +308,8 @@ class Pacer:
     """A one-shot wake-up at a chosen delay (free-running playback paced by frame stamps).
 
     ``arm(delay_s)`` calls ``callback`` once, ``delay_s`` from now (a later ``arm`` replaces
-    the pending call). It replaces a 2 ms polling timer, which woke the node 500 times a second
+    the pending call); ``due_in`` tells how long until a frame's stamp is due (bag_player,
+    camera_ingest). It replaces a 2 ms polling timer, which woke the node 500 times a second
     (measured at stop 60: ~0.5 s of CPU over a 30 s lockstep replay, small beside the image
     messages' cost then, but paid for nothing).
     """
@@ -317,6 +318,15 @@ class Pacer:
         self.node = node
         self.callback = callback
         self.timer = None
+        self.anchor: tuple[float, int] | None = None  # (monotonic s, stamp ns) of the first frame paced
+
+    def due_in(self, stamp_ns: int, rate: float) -> float:
+        """Seconds until the frame stamped ``stamp_ns`` is due (<= 0: now): frames keep the spacing
+        of their stamps divided by ``rate``, from the first frame asked about, which is due at once."""
+        now = time.monotonic()
+        if self.anchor is None:
+            self.anchor = (now, stamp_ns)
+        return self.anchor[0] + (stamp_ns - self.anchor[1]) * 1e-9 / rate - now
 
     def arm(self, delay_s: float) -> None:
         period_ns = max(int(delay_s * 1e9), 1)
