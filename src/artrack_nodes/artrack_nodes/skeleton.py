@@ -210,12 +210,11 @@ class SkeletonNode(Node):
         for stamp in sorted(self.pending):
             got = self.pending[stamp]
             complete = self._complete(stamp)
-            newer_complete = any(self._complete(s) for s in self.pending if s > stamp)
             waited = now - self.first_seen[stamp]
             timed_out = waited > float(self.p["sync_timeout_s"])
             lock_limit = float(self.p["lockstep_timeout_s"])
-            if not complete and (not (lock_limit > 0 and waited > lock_limit) if self.lockstep
-                                 else not (timed_out or newer_complete)):
+            # (free-running, no frame here has a newer complete one: those were dropped above)
+            if not complete and (not (lock_limit > 0 and waited > lock_limit) if self.lockstep else not timed_out):
                 return
             if complete and self._waits_for_reseed(stamp) and not (lock_limit > 0 and waited > lock_limit):
                 return
