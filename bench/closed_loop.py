@@ -62,6 +62,13 @@ tracker); wall-clock times vary with the machine load. Run from the repository r
     .venv/bin/python bench/closed_loop.py --scenes default --estimators baseline baseline+edges --feedback on \
         --seeds 1 2 3 4 5 6 --true-start 60      # blobs vs blobs + edges from a correct pose at frame 60
 
+``--every 3`` gives the loop every third frame once it tracks (10 frames/s: what the free-running
+graph manages on this machine), ``--refine-passes 2`` lets each such frame go round the loop up to
+two more times (``PipelineConfig.refine_passes``)::
+
+    .venv/bin/python bench/closed_loop.py --scenes default --estimators baseline --feedback on \
+        --seeds 1 2 3 4 5 6 --every 3 --refine-passes 2
+
 ``--empty-seed 1.5`` renders the same scenes with the room shown empty for their first 1.5 s
 (the person moves on unseen): the background then seeds without the ghost of the start
 position, which measures how much of a scene's error that ghost causes. ``--body YAML`` tracks
@@ -301,28 +308,40 @@ def phases_text(rows: list[dict]) -> str:
     return f"phases, mean over the seeds (mm): {', '.join(parts)}"
 
 
-def run(path: Path, name: str, estimator: str, feedback: bool, body, true_start: int | None = None) -> dict:
+def run(path: Path, name: str, estimator: str, feedback: bool, body, true_start: int | None = None,
+        every: int = 1, refine_passes: int = 0, refine_min_interval_s: float = 0.05) -> dict:
     """One closed-loop run; ``true_start``: restart from the true pose at that frame index and
-    score only the frames from there on (the loop's drift from a correct start)."""
+    score only the frames from there on (the loop's drift from a correct start). ``every`` k > 1:
+    once the loop tracks, it is given every k-th frame only (a loop or camera k times slower than
+    the scene; the frames before, while the background seeds, all go in); the scores, the tracked
+    share and the frame rate are over the frames given. ``refine_passes``: the pipeline's
+    (``PipelineConfig.refine_passes``)."""
     scene = read_scene(path)
     truth = {int(s): j for s, j in zip(scene.truth.stamps, scene.truth.joints, strict=True)}
     kind, _, extra = estimator.partition("+")  # 'baseline+edges': with the edge features fused
     config = load_pipeline_config(estimator=kind, feedback=feedback, edges=extra == "edges")
+    config.refine_passes, config.refine_min_interval_s = refine_passes, refine_min_interval_s
     pipe = ClosedLoopPipeline(body, scene.cameras, config)
     frames = list(scene.frames())  # decode before timing
     if true_start is not None:
         if not 0 <= true_start < len(frames) or int(frames[true_start][0]) not in truth:
             raise SystemExit(f"closed_loop: --true-start {true_start}: {path} has no ground truth at that frame")
         truth = {s: j for s, j in truth.items() if s >= int(frames[true_start][0])}
-    stamps, est, tru, links, stage = [], [], [], [], {}
+    stamps, est, tru, links, stage, given = [], [], [], [], {}, []
+    first = None  # index of the first tracked frame (``every``)
     t0 = time.perf_counter()
     for index, (stamp, images) in enumerate(frames):
+        if every > 1 and first is not None and (index - first) % every:
+            continue
+        given.append(int(stamp))
         if index == true_start:
             pipe.restart(int(stamp), truth[int(stamp)])
         res = pipe.step(stamp, images)
         for k, v in res.timings_ms.items():
             stage.setdefault(k, []).append(v)
         j = res.estimate.joints
+        if np.all(np.isfinite(j)) and first is None:
+            first = index
         if np.all(np.isfinite(j)) and int(stamp) in truth:
             stamps.append(int(stamp))
             est.append(j)
@@ -331,10 +350,10 @@ def run(path: Path, name: str, estimator: str, feedback: bool, body, true_start:
     elapsed = time.perf_counter() - t0
     points = [blob_points(name, body, s, lk, j) for s, lk, j in zip(stamps, links, tru, strict=True)]  # untimed
     return {
-        **score(name, body, stamps, est, tru, sum(int(s) in truth for s, _ in frames), points),
-        "fps": len(frames) / elapsed,
-        # per-stage means over all frames (a sub-stage absent in a frame counts as 0 there)
-        **{f"{k}_ms": float(np.sum(v) / len(frames)) for k, v in stage.items()},
+        **score(name, body, stamps, est, tru, sum(s in truth for s in given), points),
+        "fps": len(given) / elapsed,
+        # per-stage means over the frames given (a sub-stage absent in a frame counts as 0 there)
+        **{f"{k}_ms": float(np.sum(v) / len(given)) for k, v in stage.items()},
     }
 
 
@@ -355,6 +374,13 @@ def main() -> int:
     ap.add_argument("--true-start", type=int, default=None, metavar="FRAME",
                     help="restart every run from the true pose at this frame index and score the frames from "
                          "there on: the loop's drift from a correct start, without the automatic start-up")
+    ap.add_argument("--every", type=int, default=1, metavar="K",
+                    help="once tracking, give the loop every K-th frame only: a loop or camera K times slower "
+                         "than the scene's 30 frames/s (default 1)")
+    ap.add_argument("--refine-passes", type=int, default=0, metavar="K",
+                    help="frames at least --refine-min-interval apart go round the loop up to K more times "
+                         "(PipelineConfig.refine_passes; default 0)")
+    ap.add_argument("--refine-min-interval", type=float, default=0.05, metavar="S")
     ap.add_argument("--cache", default="/tmp/artrack_bench")
     ap.add_argument("--empty-seed", type=float, default=0.0, metavar="S",
                     help="diagnosis: every camera shows the empty room for the first S seconds (the person moves "
@@ -369,6 +395,8 @@ def main() -> int:
     args = ap.parse_args()
     if not args.empty_seed >= 0:
         ap.error(f"--empty-seed must be >= 0 seconds, got {args.empty_seed}")
+    if args.every < 1 or args.refine_passes < 0 or not args.refine_min_interval >= 0:
+        ap.error("--every must be >= 1, --refine-passes and --refine-min-interval >= 0")
     before = load_rows(args.compare) if args.compare else None
     seeds = args.seeds or [args.seed]
     body = load_body_model()
@@ -390,9 +418,10 @@ def main() -> int:
                 for fb in args.feedback:
                     mpjpe, limbs = [], []
                     for sd, path in paths.items():
-                        r = run(path, name, est, fb == "on", track_body, args.true_start)
+                        r = run(path, name, est, fb == "on", track_body, args.true_start, args.every,
+                                args.refine_passes, args.refine_min_interval)
                         rows.append({"scene": name, "cameras": n_cam, "estimator": est, "feedback": fb,
-                                     "seed": sd, **r})
+                                     "seed": sd, "every": args.every, "refine_passes": args.refine_passes, **r})
                         mpjpe.append(r["mpjpe_mm"])
                         limbs.append(r["limbs_mm"])
                         tag = "" if len(seeds) == 1 else f" s{sd}"

@@ -208,6 +208,9 @@ def _finish_track_out(tmp: Path, out: Path) -> None:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
+    if args.refine_passes < 0 or not args.refine_min_interval >= 0:
+        raise InputError(f"--refine-passes {args.refine_passes} / --refine-min-interval {args.refine_min_interval:g}: "
+                         "must be >= 0")
     out = Path(args.out)
     _check_track_out(out)
     cameras, frames, total, input_fps = _open_input(args)
@@ -219,6 +222,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     config = load_pipeline_config(estimator=args.estimator, feedback=not args.no_feedback, fps=fps,
                                   blob_config=args.blob_config, skeleton_config=args.skeleton_config,
                                   edges=args.edges, edge_config=args.edge_config)
+    config.refine_passes, config.refine_min_interval_s = args.refine_passes, args.refine_min_interval
     pipe = ClosedLoopPipeline(body, cameras, config)
     tmp, created = _start_track_out(out)
     try:
@@ -435,6 +439,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also measure contour edges at the prediction and fuse them into the skeleton "
                         "(baseline estimator; ALGORITHMS.md §2)")
     t.add_argument("--edge-config", default=None, help="edge tracker tunables (default config/edge_features.yaml)")
+    t.add_argument("--refine-passes", type=int, default=0, metavar="K",
+                   help="a frame at least --refine-min-interval after the previous one goes round the loop up "
+                        "to K more times, the priors from the last pass's body (low-frame-rate input; offline "
+                        "only; default 0)")
+    t.add_argument("--refine-min-interval", type=float, default=0.05, metavar="S",
+                   help="frame interval, s, from which --refine-passes applies (default 0.05: below 20 frames/s)")
     t.add_argument("--blob-config", default=None)
     t.add_argument("--skeleton-config", default=None)
     t.add_argument("--body-model", default=None)
