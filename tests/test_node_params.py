@@ -56,6 +56,20 @@ def test_out_of_range_parameter_stops_the_node_with_one_line(env):
 
 
 @pytest.mark.graph
+@pytest.mark.parametrize("node, args", [
+    ("skeleton", ["-p", "refine_passes:=2"]),  # free-running (lockstep false by default)
+    ("skeleton", ["-p", "refine_passes:=2", "-p", "lockstep:=true", "-p", "edges:=true"]),
+    ("blob_features", ["-p", "refine_passes:=2"]),
+])
+def test_refinement_outside_a_lockstep_blob_graph_stops_the_node_with_one_line(env, node, args):
+    proc = subprocess.run([str(NODE_BIN / node), "--ros-args", *args], env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 1
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"{node}: ") and "refine_passes" in lines[0], proc.stderr
+
+
+@pytest.mark.graph
 def test_feedback_switched_off_at_run_time_over_dds(env, probe, tmp_path):
     """A parameter client (rcl_interfaces services, as `ros2 param set`) turns blob_features'
     feedback off while it runs; out-of-range and start-up-only values are refused."""

@@ -70,6 +70,26 @@ class PipelineConfig:
     refine_min_interval_s: float = 0.05
 
 
+def refine_passes(config: PipelineConfig, previous_stamp_ns: int | None, stamp_ns: int) -> int:
+    """How many more times a frame goes round the loop (``PipelineConfig.refine_passes``): none
+    for the first frame (``previous_stamp_ns`` None) or one less than ``refine_min_interval_s``
+    after the previous frame. The offline pipeline and the skeleton node decide by this."""
+    if config.refine_passes == 0 or previous_stamp_ns is None:
+        return 0
+    return config.refine_passes if (stamp_ns - previous_stamp_ns) * 1e-9 >= config.refine_min_interval_s else 0
+
+
+def refinable(estimate: BodyEstimate) -> bool:
+    """Whether a pass's body can be the next pass's priors: tracking, with finite joints."""
+    return estimate.status == STATUS_TRACKING and bool(np.all(np.isfinite(estimate.joints)))
+
+
+def state_copy(state: Any, shared: Sequence[Any]) -> Any:
+    """A deep copy of a stage's state (to go round the loop again from it) that shares the
+    ``shared`` objects, which a step never changes (body model, cameras, configuration)."""
+    return copy.deepcopy(state, {id(x): x for x in shared})
+
+
 class FrameClock:
     """Predicts the stamp of the next frame: last interval, or 1/fps at start."""
 
@@ -228,31 +248,23 @@ class ClosedLoopPipeline:
         between frames; when frames come further apart (a slow loop or camera) the prediction
         lands off the limbs, the labels follow it, and more iterations on the same images pull
         the body back onto them. The timings are summed over the passes."""
-        extra = self._refine_passes(stamp_ns)
+        extra = refine_passes(self.config, self.last_stamp_ns if self.frames else None, stamp_ns)
         total: dict[str, float] = {}
         for done in range(1, extra + 2):
             snapshot = self._snapshot() if done <= extra else None
             result = self._step_once(stamp_ns, images)
             for k, v in result.timings_ms.items():
                 total[k] = total.get(k, 0.0) + v
-            estimate = result.estimate
-            if snapshot is None or estimate.status != STATUS_TRACKING or not np.all(np.isfinite(estimate.joints)):
+            if snapshot is None or not refinable(result.estimate):
                 break  # the last pass, or no body to refine from: this pass stands
             self._restore(snapshot)
-            self._feed_back(estimate)
+            self._feed_back(result.estimate)
         result.timings_ms, result.passes = total, done
         self.last_stamp_ns = int(stamp_ns)
         return result
 
-    def _refine_passes(self, stamp_ns: int) -> int:
-        cfg = self.config
-        if cfg.refine_passes == 0 or self.last_stamp_ns is None or self.frames == 0:
-            return 0
-        return cfg.refine_passes if (stamp_ns - self.last_stamp_ns) * 1e-9 >= cfg.refine_min_interval_s else 0
-
     def _snapshot(self) -> tuple:
-        memo = {id(x): x for x in self._shared}
-        return copy.deepcopy((self.blob_stages, self.skeleton, self.edge_stages, self.frames), memo)
+        return state_copy((self.blob_stages, self.skeleton, self.edge_stages, self.frames), self._shared)
 
     def _restore(self, snapshot: tuple) -> None:
         self.blob_stages, self.skeleton, self.edge_stages, self.frames = snapshot

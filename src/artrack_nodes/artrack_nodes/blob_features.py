@@ -3,7 +3,10 @@
 Subscribes /cameras/<cam>/image_raw and /cameras/<cam>/blob_priors, publishes
 /cameras/<cam>/blobs. In lockstep mode every image after the first waits for
 the prior that predicts it (so results are reproducible); in free-running mode
-the newest prior is used and its staleness reported in the message.
+the newest prior is used and its staleness reported in the message. With ``refine_passes``
+> 0 (lockstep, as the skeleton's), priors stamped with the frame just
+processed send that frame round again: the node goes back to its state before the
+frame and labels the same image with them (``ClosedLoopPipeline.step``).
 """
 
 from __future__ import annotations
@@ -14,9 +17,9 @@ import time
 from rclpy.node import Node
 
 from artrack.body_model import load_body_model
-from artrack.errors import ArtrackError
+from artrack.errors import ArtrackError, InputError
 from artrack.messages import blob_array_msg, priors_from_msg
-from artrack.pipeline import BlobStage, load_pipeline_config
+from artrack.pipeline import BlobStage, load_pipeline_config, state_copy
 
 from .common import (
     IMAGE_QOS_RELIABLE,
@@ -40,10 +43,13 @@ PARAMS = [
     ("prior_timeout_s", 10.0, "lockstep: give up waiting for a prior after this long, s"),
     ("loop_wait_s", 0.5, "free-running: after a frame, wait up to this long for the skeleton's prior from it "
                          "before taking the newest image without one, s (0: every image as it comes)"),
+    ("refine_passes", 0, "lockstep, the skeleton's refine_passes: > 0 answers priors stamped with the frame just "
+                         "processed by labelling that frame again from the state before it"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
     ("blob_config", "", "blob tracker tunables YAML (empty: config/blob_features.yaml)"),
 ]
-LIMITS = {"fps": (1.0, 1000.0), "prior_timeout_s": (0.0, 3600.0), "loop_wait_s": (0.0, 60.0)}
+LIMITS = {"fps": (1.0, 1000.0), "prior_timeout_s": (0.0, 3600.0), "loop_wait_s": (0.0, 60.0),
+          "refine_passes": (0, 10)}
 #: run-time changeable (ros2 param set): feedback on/off, the lockstep prior timeout
 RUNTIME = ("feedback", "prior_timeout_s")
 
@@ -57,7 +63,9 @@ class BlobFeaturesNode(Node):
         self.lockstep = bool(p["lockstep"])
         self.prior_timeout_s = float(p["prior_timeout_s"])
         config = load_pipeline_config(feedback=bool(p["feedback"]), fps=float(p["fps"]), blob_config=p["blob_config"])
-        self.stage = BlobStage(self.camera, load_body_model(p["body_model"] or None), config)
+        body = load_body_model(p["body_model"] or None)
+        self.stage = BlobStage(self.camera, body, config)
+        self._shared = [body, config]  # never changed by a step (state_copy)
         f = msgs()
         self.pub = self.create_publisher(f.cls("artrack_msgs/msg/Blob2DArray"), camera_topic(self.camera, "blobs"),
                                          RESULT_QOS)
@@ -68,10 +76,21 @@ class BlobFeaturesNode(Node):
         self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.prior_timeout_s, "prior",
                                 loop_wait_s=float(p["loop_wait_s"]))
         self.frames = 0
-        self.diag = NodeDiagnostics(self, update=lambda d: d.set("images_skipped", self.queue.skipped))
+        self.refine = int(p["refine_passes"]) > 0
+        if self.refine and not self.lockstep:
+            raise InputError("parameter 'refine_passes' needs 'lockstep' (a refined frame is labelled again from the "
+                             "state before it, which a free-running node has moved past)")
+        self.before = None  # refine: (stamp, image, state before that frame) of the frame last processed
+        self.refined = 0  # passes run again (diagnostics)
+        self.diag = NodeDiagnostics(self, update=self._report)
         self.diag.set("prior_staleness_s", float("nan"))
         self.create_timer(0.1, self.process_queue)
         self.get_logger().info(f"blob_features for {self.camera} (lockstep={self.lockstep})")
+
+    def _report(self, diag) -> None:
+        diag.set("images_skipped", self.queue.skipped)
+        if self.refine:
+            diag.set("passes_refined", self.refined)
 
     def on_image(self, msg, info) -> None:
         self.diag.input()
@@ -86,12 +105,17 @@ class BlobFeaturesNode(Node):
         except (ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad prior message on {camera_topic(self.camera, 'blob_priors')}: {exc}")
             return
+        if self.before is not None and stamp == self.before[0]:
+            self.refine_frame(priors)
+            return
         self.queue.add_input(stamp, priors, received_ns(info))
         self.process_queue()
 
     def process_queue(self) -> None:
         for stamp, image, found in self.queue.ready(lambda: self.frames == 0):
             prior_stamp, priors = found if found is not None else (None, None)
+            if self.refine:
+                self.before = (stamp, image, state_copy(self.stage, self._shared))
             t0 = time.monotonic()
             try:
                 blobs = self.stage.step(image, priors)
@@ -104,6 +128,25 @@ class BlobFeaturesNode(Node):
             used = prior_stamp if (priors is not None and self.stage.used_priors) else None
             self.diag.set("prior_staleness_s", (stamp - used) * 1e-9 if used is not None else float("nan"))
             self.pub.publish(blob_array_msg(msgs(), stamp, self.camera, f"{self.camera}_optical_frame", blobs, used))
+
+    def refine_frame(self, priors) -> None:
+        """The frame last processed, labelled again from the state before it with these priors
+        (the body of its previous pass, projected); the blobs go out with the frame's stamp."""
+        stamp, image, state = self.before
+        feedback = self.stage.feedback  # (as set now: a run-time parameter)
+        self.stage = state_copy(state, self._shared)  # (the state is kept for a further pass)
+        self.stage.feedback = feedback
+        t0 = time.monotonic()
+        try:
+            blobs = self.stage.step(image, priors)
+        except ArtrackError as exc:  # (the image passed this step before: not expected)
+            self.get_logger().error(f"frame {stamp}, refinement: {exc}")
+            self.diag.drop()
+            return
+        self.diag.processed(time.monotonic() - t0)
+        self.refined += 1
+        used = stamp if self.stage.used_priors else None
+        self.pub.publish(blob_array_msg(msgs(), stamp, self.camera, f"{self.camera}_optical_frame", blobs, used))
 
 
 def main(args=None) -> None:

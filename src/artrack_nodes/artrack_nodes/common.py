@@ -58,6 +58,9 @@ LATCHED_QOS = QoSProfile(
 
 BODY_TOPIC = "/artrack/body"
 PREDICTION_TOPIC = "/artrack/prediction"
+#: the body of a frame that goes round the loop again (skeleton ``refine_passes``): its projection is
+#: that frame's priors for the next pass
+REFINEMENT_TOPIC = "/artrack/refinement"
 GROUND_TRUTH_TOPIC = "/artrack/ground_truth"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 #: /diagnostics: reliable, volatile, last 10 (as diagnostic_updater).

@@ -2,7 +2,9 @@
 (ALGORITHMS.md §1, "Inverse observation model").
 
 Subscribes /artrack/prediction and the cameras' camera_info/extrinsics;
-publishes /cameras/<cam>/blob_priors stamped with the frame they predict.
+publishes /cameras/<cam>/blob_priors stamped with the frame they predict. Also
+projects /artrack/refinement, the body of a frame the skeleton sends round the loop
+again (its ``refine_passes``): those priors carry that frame's own stamp.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from artrack.projection import DEFAULT_CENTRE_OCCLUSION_LABELS, DEFAULT_OCCLUSIO
 
 from .common import (
     PREDICTION_TOPIC,
+    REFINEMENT_TOPIC,
     RESULT_QOS,
     CameraRigListener,
     NodeDiagnostics,
@@ -57,6 +60,8 @@ class FeedbackProjectionNode(Node):
         self.rig = CameraRigListener(self, self.names, self.on_cameras)
         self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), PREDICTION_TOPIC, self.on_prediction,
                                  RESULT_QOS)
+        self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), REFINEMENT_TOPIC, self.on_prediction,
+                                 RESULT_QOS)
         self.diag = NodeDiagnostics(self, update=lambda d: d.set("waiting_for_cameras", self.stage is None))
 
     def on_cameras(self, cameras) -> None:
@@ -75,7 +80,7 @@ class FeedbackProjectionNode(Node):
             prediction = body_from_msg(msg)
             priors = self.stage.step(prediction)
         except (ArtrackError, ValueError, AttributeError) as exc:
-            self.get_logger().error(f"dropped bad prediction on {PREDICTION_TOPIC}: {exc}")
+            self.get_logger().error(f"dropped bad prediction on {PREDICTION_TOPIC} or {REFINEMENT_TOPIC}: {exc}")
             self.diag.drop()
             return
         self.diag.processed(time.monotonic() - t0)

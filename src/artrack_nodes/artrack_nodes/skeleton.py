@@ -14,6 +14,11 @@ from the 15 joints of the bodies arriving there; in lockstep, while it is lost o
 that topic has a publisher, each frame also waits (up to lockstep_timeout_s) for that topic's body
 of the same frame (the loose_limbed node in lockstep answers every frame), so the re-seed comes
 before the frame is estimated and the replay stays reproducible.
+With ``refine_passes`` k > 0 (lockstep, blob_features ``refine``; not with edges), a tracked frame at
+least ``refine_min_interval_s`` after the previous one goes round the loop up to k more times, as in
+``ClosedLoopPipeline.step``: the node goes back to its state before the frame, publishes the frame's
+body on /artrack/refinement (feedback_projection projects it with the frame's stamp), and waits
+for every camera's blobs of the same frame again; the last pass's body and prediction are published.
 """
 
 from __future__ import annotations
@@ -26,14 +31,15 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from artrack.body_model import load_body_model
 from artrack.edge_fusion import combine
-from artrack.errors import ArtrackError
+from artrack.errors import ArtrackError, InputError
 from artrack.messages import blobs_from_msg, body_from_msg, body_msg, edge_stats_from_msg
-from artrack.pipeline import SkeletonStage, load_pipeline_config
+from artrack.pipeline import SkeletonStage, load_pipeline_config, refinable, refine_passes, state_copy
 from artrack.types import STATUS_LOST, STATUS_TRACKING
 
 from .common import (
     BODY_TOPIC,
     PREDICTION_TOPIC,
+    REFINEMENT_TOPIC,
     RESULT_QOS,
     CameraRigListener,
     NodeDiagnostics,
@@ -61,12 +67,15 @@ PARAMS = [
     ("edges", False, "also wait for and fuse every camera's edge statistics (edge_features nodes)"),
     ("reseed_topic", "", "TrackedBody topic whose TRACKING bodies re-initialise a lost (or not yet started) "
                          "estimator, e.g. /artrack/loose_limbed/body (empty: off)"),
+    ("refine_passes", 0, "lockstep: a tracked frame at least refine_min_interval_s after the previous one goes "
+                         "round the loop up to this many more times (blob_features refine on; not with edges)"),
+    ("refine_min_interval_s", 0.05, "frame interval from which refine_passes applies, s"),
 ]
 #: re-seed bodies: reliable, volatile (a restarted skeleton must not re-seed from stale bodies)
 RESEED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
 LIMITS = {"fps": (1.0, 1000.0), "sync_timeout_s": (0.0, 60.0), "lockstep_timeout_s": (0.0, 3600.0),
-          "body_id": (0, 2**31 - 1)}
+          "body_id": (0, 2**31 - 1), "refine_passes": (0, 10), "refine_min_interval_s": (0.0, 3600.0)}
 RUNTIME = ("sync_timeout_s", "lockstep_timeout_s")  # read by flush() on every call
 
 
@@ -80,6 +89,14 @@ class SkeletonNode(Node):
         self.body = load_body_model(p["body_model"] or None)
         self.config = load_pipeline_config(estimator=p["estimator"], fps=float(p["fps"]),
                                            skeleton_config=p["skeleton_config"])
+        self.config.refine_passes = int(p["refine_passes"])
+        self.config.refine_min_interval_s = float(p["refine_min_interval_s"])
+        if self.config.refine_passes and not (self.lockstep and not bool(p["edges"])):
+            raise InputError("parameter 'refine_passes' needs 'lockstep' and no 'edges' (the feature nodes label a "
+                             "refined frame again from their state before it)")
+        self.previous_stamp: int | None = None  # the last frame estimated (refine_passes)
+        self.refining: tuple[int, int] | None = None  # (frame, passes left after the one awaited) while refining
+        self.refine_state = None  # the stage before the pass under way
         self.stage: SkeletonStage | None = None
         self.edges = bool(p["edges"])
         self.pending: dict[int, dict] = {}
@@ -92,6 +109,7 @@ class SkeletonNode(Node):
         body_cls = f.cls("artrack_msgs/msg/TrackedBody")
         self.body_pub = self.create_publisher(body_cls, BODY_TOPIC, RESULT_QOS)
         self.pred_pub = self.create_publisher(body_cls, PREDICTION_TOPIC, RESULT_QOS)
+        self.refine_pub = self.create_publisher(body_cls, REFINEMENT_TOPIC, RESULT_QOS)
         self.rig = CameraRigListener(self, self.names, self.on_cameras)
         for n in self.names:
             self.create_subscription(f.cls("artrack_msgs/msg/Blob2DArray"), camera_topic(n, "blobs"),
@@ -118,6 +136,7 @@ class SkeletonNode(Node):
                                f"lockstep={self.lockstep}")
 
     def on_cameras(self, cameras) -> None:
+        self.cameras = list(cameras)
         self.stage = SkeletonStage(self.body, cameras, self.config)
         self.get_logger().info("camera rig complete")
         self.flush()
@@ -237,16 +256,31 @@ class SkeletonNode(Node):
 
     def process(self, stamp: int, blobs_by_camera: dict, edges=None) -> None:
         self.last_done = stamp
+        if self.refining is not None and self.refining[0] != stamp:
+            self.refining = None  # (the refinement's blobs never came: that frame was given up)
+        left = (self.refining[1] if self.refining is not None
+                else refine_passes(self.config, self.previous_stamp, stamp))
+        if left:  # the state before the frame, to go round again from (ClosedLoopPipeline.step)
+            self.refine_state = state_copy(self.stage, [self.body, self.config, *self.cameras])
         t0 = time.monotonic()
         try:
             estimate, prediction = self.stage.step(stamp, blobs_by_camera, edges)
         except ArtrackError as exc:
             self.get_logger().error(f"frame {stamp}: {exc}")
+            self.refining = None
             return
         self.diag.processed(time.monotonic() - t0)
-        self.watch.estimated(estimate, sorted(blobs_by_camera))
         f = msgs()
         frame, body_id = self.p["world_frame"], int(self.p["body_id"])
+        if left and refinable(estimate):
+            self.stage, self.refine_state = self.refine_state, None
+            self.refining = (stamp, left - 1)
+            self.last_done = stamp - 1  # this frame's blobs come again
+            self.refine_pub.publish(body_msg(f, estimate, frame, body_id))
+            return
+        self.refining, self.refine_state = None, None
+        self.previous_stamp = stamp
+        self.watch.estimated(estimate, sorted(blobs_by_camera))
         # Prediction first: the priors for t+1 should be on their way before the player hears "t is done".
         self.pred_pub.publish(body_msg(f, prediction, frame, body_id))
         self.body_pub.publish(body_msg(f, estimate, frame, body_id))
