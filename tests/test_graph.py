@@ -70,7 +70,8 @@ def test_graph_equals_offline_track(graph_run, small_scene, env, tmp_path):
     _assert_same_bodies(graph_run, tmp_path / "offline" / "track", "blobs")
 
 
-def test_graph_with_refinement_equals_offline_track_with_refinement(tmp_path_factory, small_scene, env, tmp_path):
+def test_graph_with_refinement_equals_offline_track_with_refinement(tmp_path_factory, small_scene, env, tmp_path,
+                                                                     graph_run):
     """``refine_passes`` over DDS (skeleton -> /artrack/refinement -> feedback_projection -> the
     blob_features nodes, which label the frame again from their state before it): with every tracked
     frame refined twice (``refine_min_interval_s`` 0) the graph equals `artrack track --refine-passes 2`,
@@ -80,8 +81,7 @@ def test_graph_with_refinement_equals_offline_track_with_refinement(tmp_path_fac
     run_artrack(env, "track", str(small_scene), "--refine-passes", "2", "--refine-min-interval", "0",
                 "--out", str(tmp_path / "offline"), "--quiet")
     offline, tracked = _assert_same_bodies(live, tmp_path / "offline" / "track", "refined")
-    run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "plain"), "--quiet")
-    plain = _bodies(tmp_path / "plain" / "track")
+    plain = _bodies(graph_run)  # (= the plain offline loop: test_graph_equals_offline_track)
     moved = max(float(np.nanmax(np.abs(plain[s] - offline[s]))) for s in tracked)
     assert moved > 1e-3, "the refined frames should differ from the plain loop's"
     with open_bag(live) as reader:
