@@ -441,8 +441,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--edge-config", default=None, help="edge tracker tunables (default config/edge_features.yaml)")
     t.add_argument("--refine-passes", type=int, default=0, metavar="K",
                    help="a frame at least --refine-min-interval after the previous one goes round the loop up "
-                        "to K more times, the priors from the last pass's body (low-frame-rate input; offline "
-                        "only; default 0)")
+                        "to K more times, the priors from the last pass's body (low-frame-rate input; the graph: "
+                        "refine_passes, lockstep; default 0)")
     t.add_argument("--refine-min-interval", type=float, default=0.05, metavar="S",
                    help="frame interval, s, from which --refine-passes applies (default 0.05: below 20 frames/s)")
     t.add_argument("--blob-config", default=None)

@@ -63,7 +63,8 @@ class PipelineConfig:
     #: skeleton (baseline estimator) as soft constraints on the links; off by default
     edges: bool = False
     edge: EdgeTrackerConfig = field(default_factory=EdgeTrackerConfig)
-    #: the loop iterated within a frame (offline only, :meth:`ClosedLoopPipeline.step`): a frame
+    #: the loop iterated within a frame (:meth:`ClosedLoopPipeline.step`; in the graph the skeleton's
+    #: and blob_features' ``refine_passes``, lockstep, without edges): a frame
     #: that comes at least ``refine_min_interval_s`` after the previous one is processed this many
     #: more times, each pass from the same state with the last pass's body as the priors; 0 = off
     refine_passes: int = 0

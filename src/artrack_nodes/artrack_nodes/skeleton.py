@@ -14,9 +14,9 @@ from the 15 joints of the bodies arriving there; in lockstep, while it is lost o
 that topic has a publisher, each frame also waits (up to lockstep_timeout_s) for that topic's body
 of the same frame (the loose_limbed node in lockstep answers every frame), so the re-seed comes
 before the frame is estimated and the replay stays reproducible.
-With ``refine_passes`` k > 0 (lockstep, blob_features ``refine``; not with edges), a tracked frame at
-least ``refine_min_interval_s`` after the previous one goes round the loop up to k more times, as in
-``ClosedLoopPipeline.step``: the node goes back to its state before the frame, publishes the frame's
+With ``refine_passes`` k > 0 (lockstep, and the blob_features nodes' ``refine_passes`` > 0; not
+with edges), a tracked frame at least ``refine_min_interval_s`` after the previous one goes round
+the loop up to k more times, as in ``ClosedLoopPipeline.step``: the node goes back to its state before the frame, publishes the frame's
 body on /artrack/refinement (feedback_projection projects it with the frame's stamp), and waits
 for every camera's blobs of the same frame again; the last pass's body and prediction are published.
 """
@@ -68,7 +68,8 @@ PARAMS = [
     ("reseed_topic", "", "TrackedBody topic whose TRACKING bodies re-initialise a lost (or not yet started) "
                          "estimator, e.g. /artrack/loose_limbed/body (empty: off)"),
     ("refine_passes", 0, "lockstep: a tracked frame at least refine_min_interval_s after the previous one goes "
-                         "round the loop up to this many more times (blob_features refine on; not with edges)"),
+                         "round the loop up to this many more times (blob_features refine_passes > 0 too; not with "
+                         "edges)"),
     ("refine_min_interval_s", 0.05, "frame interval from which refine_passes applies, s"),
 ]
 #: re-seed bodies: reliable, volatile (a restarted skeleton must not re-seed from stale bodies)
