@@ -16,9 +16,10 @@ of the same frame (the loose_limbed node in lockstep answers every frame), so th
 before the frame is estimated and the replay stays reproducible.
 With ``refine_passes`` k > 0 (lockstep, and the blob_features nodes' ``refine_passes`` > 0; not
 with edges), a tracked frame at least ``refine_min_interval_s`` after the previous one goes round
-the loop up to k more times, as in ``ClosedLoopPipeline.step``: the node goes back to its state before the frame, publishes the frame's
-body on /artrack/refinement (feedback_projection projects it with the frame's stamp), and waits
-for every camera's blobs of the same frame again; the last pass's body and prediction are published.
+the loop up to k more times, as in ``ClosedLoopPipeline.step``: the node goes back to its state
+before the frame, publishes the frame's body on /artrack/refinement (feedback_projection projects
+it with the frame's stamp), and waits for every camera's blobs of the same frame again; the last
+pass's body and prediction are published.
 """
 
 from __future__ import annotations
