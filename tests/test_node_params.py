@@ -47,12 +47,17 @@ def test_nodes_yaml_documents_the_declared_parameters(name):
 
 
 @pytest.mark.graph
-def test_out_of_range_parameter_stops_the_node_with_one_line(env):
-    proc = subprocess.run([str(NODE_BIN / "skeleton"), "--ros-args", "-p", "sync_timeout_s:=-1.0"], env=env,
-                          capture_output=True, text=True, timeout=60)
+def _assert_stops_with_one_line(env, node: str, args: list[str], names: str) -> None:
+    """The node, started with ``args``, exits 1 with one stderr line naming the parameter ``names``."""
+    proc = subprocess.run([str(NODE_BIN / node), "--ros-args", *args], env=env, capture_output=True, text=True,
+                          timeout=60)
     assert proc.returncode == 1
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("skeleton: ") and "sync_timeout_s" in lines[0], proc.stderr
+    assert len(lines) == 1 and lines[0].startswith(f"{node}: ") and names in lines[0], proc.stderr
+
+
+def test_out_of_range_parameter_stops_the_node_with_one_line(env):
+    _assert_stops_with_one_line(env, "skeleton", ["-p", "sync_timeout_s:=-1.0"], "sync_timeout_s")
 
 
 @pytest.mark.graph
@@ -62,11 +67,7 @@ def test_out_of_range_parameter_stops_the_node_with_one_line(env):
     ("blob_features", ["-p", "refine_passes:=2"]),
 ])
 def test_refinement_outside_a_lockstep_blob_graph_stops_the_node_with_one_line(env, node, args):
-    proc = subprocess.run([str(NODE_BIN / node), "--ros-args", *args], env=env, capture_output=True, text=True,
-                          timeout=60)
-    assert proc.returncode == 1
-    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith(f"{node}: ") and "refine_passes" in lines[0], proc.stderr
+    _assert_stops_with_one_line(env, node, args, "refine_passes")
 
 
 @pytest.mark.graph

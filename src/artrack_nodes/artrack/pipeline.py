@@ -249,7 +249,7 @@ class ClosedLoopPipeline:
         between frames; when frames come further apart (a slow loop or camera) the prediction
         lands off the limbs, the labels follow it, and more iterations on the same images pull
         the body back onto them. The timings are summed over the passes."""
-        extra = refine_passes(self.config, self.last_stamp_ns if self.frames else None, stamp_ns)
+        extra = refine_passes(self.config, self.last_stamp_ns, stamp_ns)
         total: dict[str, float] = {}
         for done in range(1, extra + 2):
             snapshot = self._snapshot() if done <= extra else None

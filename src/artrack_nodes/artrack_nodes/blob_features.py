@@ -116,18 +116,8 @@ class BlobFeaturesNode(Node):
             prior_stamp, priors = found if found is not None else (None, None)
             if self.refine:
                 self.before = (stamp, image, state_copy(self.stage, self._shared))
-            t0 = time.monotonic()
-            try:
-                blobs = self.stage.step(image, priors)
-            except ArtrackError as exc:
-                self.get_logger().error(f"frame {stamp}: {exc}")
-                self.diag.drop()
-                continue
-            self.diag.processed(time.monotonic() - t0)
-            self.frames += 1
-            used = prior_stamp if (priors is not None and self.stage.used_priors) else None
-            self.diag.set("prior_staleness_s", (stamp - used) * 1e-9 if used is not None else float("nan"))
-            self.pub.publish(blob_array_msg(msgs(), stamp, self.camera, f"{self.camera}_optical_frame", blobs, used))
+            if self._label(stamp, image, priors, prior_stamp):
+                self.frames += 1
 
     def refine_frame(self, priors) -> None:
         """The frame last processed, labelled again from the state before it with these priors
@@ -136,18 +126,24 @@ class BlobFeaturesNode(Node):
         feedback = self.stage.feedback  # (as set now: a run-time parameter)
         self.stage = state_copy(state, self._shared)  # (the state is kept for a further pass)
         self.stage.feedback = feedback
+        if self._label(stamp, image, priors, stamp, ", refinement"):
+            self.refined += 1
+
+    def _label(self, stamp: int, image, priors, prior_stamp: int | None, context: str = "") -> bool:
+        """The blobs of one image with the priors stamped ``prior_stamp`` (None: none), published
+        with the frame's stamp; False (logged, counted as a drop) if the tracker refused the image."""
         t0 = time.monotonic()
         try:
             blobs = self.stage.step(image, priors)
-        except ArtrackError as exc:  # (the image passed this step before: not expected)
-            self.get_logger().error(f"frame {stamp}, refinement: {exc}")
+        except ArtrackError as exc:
+            self.get_logger().error(f"frame {stamp}{context}: {exc}")
             self.diag.drop()
-            return
+            return False
         self.diag.processed(time.monotonic() - t0)
-        self.refined += 1
-        used = stamp if self.stage.used_priors else None
+        used = prior_stamp if (priors is not None and self.stage.used_priors) else None
+        self.diag.set("prior_staleness_s", (stamp - used) * 1e-9 if used is not None else float("nan"))
         self.pub.publish(blob_array_msg(msgs(), stamp, self.camera, f"{self.camera}_optical_frame", blobs, used))
-
+        return True
 
 def main(args=None) -> None:
     sys.exit(run_node(BlobFeaturesNode, __doc__, PARAMS, args, LIMITS, RUNTIME))

@@ -98,7 +98,6 @@ class SkeletonNode(Node):
                              "refined frame again from their state before it)")
         self.previous_stamp: int | None = None  # the last frame estimated (refine_passes)
         self.refining: tuple[int, int] | None = None  # (frame, passes left after the one awaited) while refining
-        self.refine_state = None  # the stage before the pass under way
         self.stage: SkeletonStage | None = None
         self.edges = bool(p["edges"])
         self.pending: dict[int, dict] = {}
@@ -262,8 +261,8 @@ class SkeletonNode(Node):
             self.refining = None  # (the refinement's blobs never came: that frame was given up)
         left = (self.refining[1] if self.refining is not None
                 else refine_passes(self.config, self.previous_stamp, stamp))
-        if left:  # the state before the frame, to go round again from (ClosedLoopPipeline.step)
-            self.refine_state = state_copy(self.stage, [self.body, self.config, *self.cameras])
+        # the state before the frame, to go round again from (ClosedLoopPipeline.step)
+        before = state_copy(self.stage, [self.body, self.config, *self.cameras]) if left else None
         t0 = time.monotonic()
         try:
             estimate, prediction = self.stage.step(stamp, blobs_by_camera, edges)
@@ -274,13 +273,13 @@ class SkeletonNode(Node):
         self.diag.processed(time.monotonic() - t0)
         f = msgs()
         frame, body_id = self.p["world_frame"], int(self.p["body_id"])
-        if left and refinable(estimate):
-            self.stage, self.refine_state = self.refine_state, None
+        if before is not None and refinable(estimate):
+            self.stage = before
             self.refining = (stamp, left - 1)
             self.last_done = stamp - 1  # this frame's blobs come again
             self.refine_pub.publish(body_msg(f, estimate, frame, body_id))
             return
-        self.refining, self.refine_state = None, None
+        self.refining = None
         self.previous_stamp = stamp
         self.watch.estimated(estimate, sorted(blobs_by_camera))
         # Prediction first: the priors for t+1 should be on their way before the player hears "t is done".
