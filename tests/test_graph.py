@@ -23,12 +23,12 @@ pytestmark = pytest.mark.graph
 FRAMES = 75  # conftest.small_scene: 2.5 s at 30 fps
 
 
-def _launch(out: Path, scene: Path, env, *sets: str, timeout_s: int = 240) -> Path:
-    """Run config/graph.yaml on ``scene`` (extra ``--set`` values), return the recorded bag."""
+def _launch(out: Path, scene: Path, env, *sets: str, timeout_s: int = 240, graph: str = "config/graph.yaml") -> Path:
+    """Run ``graph`` on ``scene`` (extra ``--set`` values), return the recorded bag."""
     rec = out / "graph"
     extra = [a for s in sets for a in ("--set", s)]
     proc = subprocess.run(
-        [str(NODE_BIN / "artrack"), "launch", "config/graph.yaml", "--set", f"bag={scene}",
+        [str(NODE_BIN / "artrack"), "launch", graph, "--set", f"bag={scene}",
          "--set", f"out={rec}", *extra, "--log-dir", str(out / "logs"), "--timeout", str(timeout_s)],
         env=env, cwd=REPO, capture_output=True, text=True, timeout=timeout_s + 60,
     )
@@ -87,6 +87,38 @@ def test_graph_with_refinement_equals_offline_track_with_refinement(tmp_path_fac
     with open_bag(live) as reader:
         refined = [body_from_msg(m).stamp_ns for _, _, m in reader.messages(["/artrack/refinement"])]
     assert sorted(refined) == sorted(2 * tracked), "every tracked frame goes round twice more"
+
+
+def test_refinement_unanswered_by_the_blob_nodes_is_given_up(tmp_path_factory, small_scene, env, graph_run):
+    """The skeleton refines but the blob_features nodes run without ``refine_passes`` (a graph set up
+    by hand): they log that they do not label the frame again, the skeleton abandons that pass after
+    its ``refine_timeout_s``, publishes the frame's first pass and switches refinement off with one
+    warning, so the run goes on and equals the plain loop (before: no body for that frame, and each
+    later frame waited for the player's 30-s timeout)."""
+    out = tmp_path_factory.mktemp("graph_refine_unanswered")
+    graph = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
+    for node in graph["nodes"]:
+        if node["name"] == "blob_features_{camera}":
+            node["parameters"]["refine_passes"] = 0
+        if node["name"] == "skeleton":
+            node["parameters"]["refine_timeout_s"] = 1.0
+    path = out / "graph.yaml"
+    path.write_text(yaml.safe_dump(graph))
+    live = _launch(out, small_scene, env, "refine_passes=2", "refine_min_interval_s=0.0", graph=str(path))
+    plain = _bodies(graph_run)
+    bodies = _bodies(live)
+    assert sorted(bodies) == sorted(plain), "every frame of the bag gets its body exactly once"
+    tracked = [s for s in plain if not np.isnan(plain[s]).all()]
+    worst = max(float(np.nanmax(np.abs(bodies[s] - plain[s]))) for s in tracked)
+    assert worst <= 1e-9, f"the first pass stands, then the plain loop: differs by {worst:.3g} m"
+    with open_bag(live) as reader:
+        refined = [body_from_msg(m).stamp_ns for _, _, m in reader.messages(["/artrack/refinement"])]
+    assert refined == [min(tracked)], "one refinement asked for (the first tracked frame's), then none"
+    skeleton_log = (out / "logs" / "skeleton.log").read_text(errors="replace")
+    warnings = [line for line in skeleton_log.splitlines() if "refinement off" in line]
+    assert len(warnings) == 1 and "refine_passes > 0" in warnings[0], skeleton_log[-2000:]
+    blob_log = (out / "logs" / "blob_features_cam01.log").read_text(errors="replace")
+    assert sum("not labelled again" in line for line in blob_log.splitlines()) == 1, blob_log[-2000:]
 
 
 def test_priors_flow_back_and_are_used(graph_run):

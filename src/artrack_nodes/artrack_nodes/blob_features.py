@@ -6,7 +6,9 @@ the prior that predicts it (so results are reproducible); in free-running mode
 the newest prior is used and its staleness reported in the message. With ``refine_passes``
 > 0 (lockstep, as the skeleton's), priors stamped with the frame just
 processed send that frame round again: the node goes back to its state before the
-frame and labels the same image with them (``ClosedLoopPipeline.step``).
+frame and labels the same image with them (``ClosedLoopPipeline.step``). Without it, such priors
+are logged once and left unanswered (the skeleton gives the refinement up after its
+``refine_timeout_s``).
 """
 
 from __future__ import annotations
@@ -81,6 +83,8 @@ class BlobFeaturesNode(Node):
             raise InputError("parameter 'refine_passes' needs 'lockstep' (a refined frame is labelled again from the "
                              "state before it, which a free-running node has moved past)")
         self.before = None  # refine: (stamp, image, state before that frame) of the frame last processed
+        self.last_stamp: int | None = None  # the frame last processed
+        self.told_no_refine = False  # a refinement's priors came without refine_passes (logged once)
         self.refined = 0  # passes run again (diagnostics)
         self.diag = NodeDiagnostics(self, update=self._report)
         self.diag.set("prior_staleness_s", float("nan"))
@@ -108,12 +112,19 @@ class BlobFeaturesNode(Node):
         if self.before is not None and stamp == self.before[0]:
             self.refine_frame(priors)
             return
+        if not self.refine and stamp == self.last_stamp:
+            if not self.told_no_refine:
+                self.get_logger().warning(f"priors for frame {stamp}, the frame just labelled (the skeleton refines "
+                                          "it): not labelled again, this node runs with refine_passes 0")
+                self.told_no_refine = True
+            return
         self.queue.add_input(stamp, priors, received_ns(info))
         self.process_queue()
 
     def process_queue(self) -> None:
         for stamp, image, found in self.queue.ready(lambda: self.frames == 0):
             prior_stamp, priors = found if found is not None else (None, None)
+            self.last_stamp = stamp
             if self.refine:
                 self.before = (stamp, image, state_copy(self.stage, self._shared))
             if self._label(stamp, image, priors, prior_stamp):

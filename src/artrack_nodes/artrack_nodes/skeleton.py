@@ -19,7 +19,10 @@ with edges), a tracked frame at least ``refine_min_interval_s`` after the previo
 the loop up to k more times, as in ``ClosedLoopPipeline.step``: the node goes back to its state
 before the frame, publishes the frame's body on /artrack/refinement (feedback_projection projects
 it with the frame's stamp), and waits for every camera's blobs of the same frame again; the last
-pass's body and prediction are published.
+pass's body and prediction are published. A pass whose blobs have not all come after
+``refine_timeout_s`` (a blob_features node restarted since the frame, or one run without
+``refine_passes``) is abandoned: the previous pass's body and prediction are published, and if no
+camera answered at all, refinement is switched off for the rest of the run (one warning line).
 """
 
 from __future__ import annotations
@@ -72,13 +75,16 @@ PARAMS = [
                          "round the loop up to this many more times (blob_features refine_passes > 0 too; not with "
                          "edges)"),
     ("refine_min_interval_s", 0.05, "frame interval from which refine_passes applies, s"),
+    ("refine_timeout_s", 10.0, "a refinement pass whose blobs have not all come after this long is abandoned (the "
+                               "previous pass is published; no camera answering switches refinement off), s"),
 ]
 #: re-seed bodies: reliable, volatile (a restarted skeleton must not re-seed from stale bodies)
 RESEED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
 LIMITS = {"fps": (1.0, 1000.0), "sync_timeout_s": (0.0, 60.0), "lockstep_timeout_s": (0.0, 3600.0),
-          "body_id": (0, 2**31 - 1), "refine_passes": (0, 10), "refine_min_interval_s": (0.0, 3600.0)}
-RUNTIME = ("sync_timeout_s", "lockstep_timeout_s")  # read by flush() on every call
+          "body_id": (0, 2**31 - 1), "refine_passes": (0, 10), "refine_min_interval_s": (0.0, 3600.0),
+          "refine_timeout_s": (0.001, 3600.0)}
+RUNTIME = ("sync_timeout_s", "lockstep_timeout_s", "refine_timeout_s")  # read by flush() on every call
 
 
 class SkeletonNode(Node):
@@ -98,6 +104,9 @@ class SkeletonNode(Node):
                              "refined frame again from their state before it)")
         self.previous_stamp: int | None = None  # the last frame estimated (refine_passes)
         self.refining: tuple[int, int] | None = None  # (frame, passes left after the one awaited) while refining
+        # while refining: (monotonic s the pass was asked for, the stage after the previous pass, its estimate,
+        # its prediction, its cameras): what is published if the pass's blobs do not come (refine_timeout_s)
+        self.refine_fallback: tuple | None = None
         self.stage: SkeletonStage | None = None
         self.edges = bool(p["edges"])
         self.pending: dict[int, dict] = {}
@@ -204,20 +213,25 @@ class SkeletonNode(Node):
 
     def flush(self) -> None:
         """Estimate the frames that are ready (complete, or waited for long enough), then arm the
-        pacer for the timeout of the oldest frame still pending."""
+        pacer for the timeout of the oldest frame still pending (or of the refinement pass awaited)."""
         self._flush()
-        if self.stage is None or not self.pending:
+        if self.stage is None:
             return
+        dues = []
+        if self.refine_fallback is not None:
+            dues.append(self.refine_fallback[0] + float(self.p["refine_timeout_s"]))
         limit = float(self.p["lockstep_timeout_s"] if self.lockstep else self.p["sync_timeout_s"])
-        if self.lockstep and limit <= 0:
-            return  # lockstep_timeout_s 0: wait for ever
-        due = min(self.first_seen.values()) + limit
-        self.pacer.arm(max(0.0, due - time.monotonic()) + 1e-3)  # (a timeout is "waited > limit")
+        if self.pending and not (self.lockstep and limit <= 0):  # (lockstep_timeout_s 0: wait for ever)
+            dues.append(min(self.first_seen.values()) + limit)
+        if dues:
+            self.pacer.arm(max(0.0, min(dues) - time.monotonic()) + 1e-3)  # (a timeout is "waited > limit")
 
     def _flush(self) -> None:
         if self.stage is None:
             return
         now = time.monotonic()
+        if self.refine_fallback is not None and now - self.refine_fallback[0] > float(self.p["refine_timeout_s"]):
+            self._abandon_refinement(now)
         if not self.lockstep:
             # Free-running: the newest complete frame is the one to estimate; older frames still
             # pending (a camera's blobs missing, or the node behind) are dropped, not estimated late.
@@ -255,10 +269,31 @@ class SkeletonNode(Node):
         blobs_in = len(self.pending.get(stamp, {})) == len(self.names)
         return blobs_in and (not self.edges or len(self.pending_edges.get(stamp, {})) == len(self.names))
 
+    def _abandon_refinement(self, now: float) -> None:
+        """The refinement pass awaited has not got every camera's blobs within refine_timeout_s: the
+        previous pass stands (its body and prediction are published); refinement is switched off if no
+        camera answered at all (their nodes do not label a frame again)."""
+        asked, stage, estimate, prediction, cameras = self.refine_fallback
+        stamp = self.refining[0]
+        answered = sorted(self.pending.pop(stamp, {}))
+        self.first_seen.pop(stamp, None)
+        self.pending_edges.pop(stamp, None)
+        missing = sorted(set(self.names) - set(answered))
+        what = "refinement off" if not answered else "this frame's refinement given up"
+        self.get_logger().warning(
+            f"frame {stamp}: no refinement blobs from {', '.join(missing)} after {now - asked:.1f} s "
+            f"(refine_timeout_s): the previous pass is published, {what}"
+            + ("; do the blob_features nodes run with refine_passes > 0?" if not answered else ""))
+        if not answered:
+            self.config.refine_passes = 0
+        self.stage = stage
+        self._publish(stamp, estimate, prediction, cameras)
+
     def process(self, stamp: int, blobs_by_camera: dict, edges=None) -> None:
         self.last_done = stamp
         if self.refining is not None and self.refining[0] != stamp:
             self.refining = None  # (the refinement's blobs never came: that frame was given up)
+            self.refine_fallback = None
         left = (self.refining[1] if self.refining is not None
                 else refine_passes(self.config, self.previous_stamp, stamp))
         # the state before the frame, to go round again from (ClosedLoopPipeline.step)
@@ -268,20 +303,28 @@ class SkeletonNode(Node):
             estimate, prediction = self.stage.step(stamp, blobs_by_camera, edges)
         except ArtrackError as exc:
             self.get_logger().error(f"frame {stamp}: {exc}")
+            if self.refine_fallback is not None:  # a refinement pass: the previous pass stands
+                _, self.stage, estimate, prediction, cameras = self.refine_fallback
+                self._publish(stamp, estimate, prediction, cameras)
             self.refining = None
             return
         self.diag.processed(time.monotonic() - t0)
-        f = msgs()
-        frame, body_id = self.p["world_frame"], int(self.p["body_id"])
         if before is not None and refinable(estimate):
+            self.refine_fallback = (time.monotonic(), self.stage, estimate, prediction, sorted(blobs_by_camera))
             self.stage = before
             self.refining = (stamp, left - 1)
             self.last_done = stamp - 1  # this frame's blobs come again
-            self.refine_pub.publish(body_msg(f, estimate, frame, body_id))
+            self.refine_pub.publish(body_msg(msgs(), estimate, self.p["world_frame"], int(self.p["body_id"])))
             return
-        self.refining = None
-        self.previous_stamp = stamp
-        self.watch.estimated(estimate, sorted(blobs_by_camera))
+        self._publish(stamp, estimate, prediction, sorted(blobs_by_camera))
+
+    def _publish(self, stamp: int, estimate, prediction, cameras: list[str]) -> None:
+        """The frame's last pass: its prediction and body go out; the frame is done."""
+        self.refining = self.refine_fallback = None
+        self.previous_stamp = self.last_done = stamp
+        self.watch.estimated(estimate, cameras)
+        f = msgs()
+        frame, body_id = self.p["world_frame"], int(self.p["body_id"])
         # Prediction first: the priors for t+1 should be on their way before the player hears "t is done".
         self.pred_pub.publish(body_msg(f, prediction, frame, body_id))
         self.body_pub.publish(body_msg(f, estimate, frame, body_id))
