@@ -9,6 +9,7 @@ recording at 15 frames/s), and the graph estimates what it can. Per run it print
 
 * frames sent, bodies back, bodies per second (the loop's rate) and their share of the frames;
 * latency: from sending a frame to receiving its body, median and max (the player's clock);
+* CPU seconds by node while the graph ran (``artrack launch``'s accounting, start-up included);
 * accuracy on the bodies that came back: on a recording with ``/artrack/ground_truth`` (``artrack
   synth``) the MPJPE of ``artrack eval``; otherwise the checks of ``bench/real_video.py`` (joints
   inside the dilated foreground over all frames, frames without a body counting as misses, and
@@ -79,6 +80,8 @@ def run_graph(args, out: Path, rate: float, loop_wait: float) -> dict:
                          f"{proc.stderr[-2000:]}")
     figures = parse_player_log(log.read_text(errors="replace"))
     figures["wall_s"] = round(time.monotonic() - t0, 1)
+    cpu = out / "logs" / "cpu.json"  # (artrack launch: each node's CPU s while the graph ran)
+    figures["cpu_s"] = json.loads(cpu.read_text())["cpu_s"] if cpu.exists() else {}
     return figures
 
 
@@ -153,6 +156,15 @@ def main() -> int:
               f"{r['bodies_per_s']:8.2f} {lat:>19}  {a}")
     print("(bodies/s: the loop's rate, from the first frame sent to the last body back; latency: sending a frame "
           "to its body)")
+    nodes = sorted({n for r in records for n in r["cpu_s"]}, key=lambda n: -max(r["cpu_s"].get(n, 0) for r in records))
+    if nodes:
+        print("\nCPU s by node while the graph ran (start-up included), one column per run; ms per body below")
+        print(f"{'node':<22}" + "".join(f"{r['input_fps']:>6.1f}/{r['loop_wait_s']:<5g}" for r in records))
+        for n in [*nodes, "total"]:
+            vals = [sum(r["cpu_s"].values()) if n == "total" else r["cpu_s"].get(n, float("nan")) for r in records]
+            print(f"{n:<22}" + "".join(f"{v:12.2f}" for v in vals))
+        print(f"{'total ms per body':<22}" + "".join(
+            f"{1e3 * sum(r['cpu_s'].values()) / max(r['bodies'], 1):12.1f}" for r in records))
     print(json.dumps({"runs": records}))
     return 0
 

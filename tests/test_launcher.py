@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import py_compile
 import stat
@@ -91,3 +92,30 @@ def test_launcher_restarts_a_crashing_node_and_ends_with_the_until_exit_node(tmp
     assert (tmp_path / "logs" / "player.log").is_file()
     assert not launcher.tmp.exists(), "the parameter files' temporary directory is removed"
     assert not launcher.logs, "the log files are closed"
+
+
+def test_launcher_reports_each_nodes_cpu_time_summed_over_restarts(tmp_path, monkeypatch, capfd):
+    """Per-node CPU (user + system, /proc) while the graph ran: a node that burns 0.3 s of CPU, exits and
+    is restarted to burn 0.3 s again counts both; a node that sleeps counts little."""
+    marks = tmp_path / "burns.txt"
+    burn = ("import time, sys\n"
+            "t0 = time.process_time()\n"
+            "while time.process_time() - t0 < 0.3: pass\n"
+            f"open({str(marks)!r}, 'a').write('x')\n"
+            f"if open({str(marks)!r}).read() == 'x': raise SystemExit(3)\n"
+            "time.sleep(60)")
+    player = (f"import os, time\nwhile not (os.path.exists({str(marks)!r}) and open({str(marks)!r}).read() == 'xx'):\n"
+              "    time.sleep(0.05)\n"
+              "time.sleep(0.3)\n")
+    prefix = _fake_prefix(tmp_path, {"burner": burn, "sleeper": "import time; time.sleep(60)", "player": player})
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(prefix) + os.pathsep + os.environ.get("AMENT_PREFIX_PATH", ""))
+    specs = [NodeSpec("burner", "burner", restarts=1), NodeSpec("sleeper", "sleeper"),
+             NodeSpec("player", "player", until_exit=True)]
+    launcher = Launcher(specs, log_dir=tmp_path / "logs")
+    assert launcher.run(timeout_s=60) == 0
+    cpu = json.loads((tmp_path / "logs" / "cpu.json").read_text())["cpu_s"]
+    assert set(cpu) == {"burner", "sleeper", "player"}
+    assert cpu["burner"] >= 0.6, cpu
+    assert cpu["sleeper"] < 0.3 and cpu["sleeper"] < cpu["burner"] - 0.4, cpu
+    assert list(cpu)[0] == "burner", "largest first"
+    assert "artrack launch: CPU s by node: burner " in capfd.readouterr().err

@@ -5,7 +5,10 @@ parameters; nodes marked ``per_camera`` are started once per camera. Each
 node gets a generated ROS parameter file. The launcher forwards SIGINT and
 SIGTERM, restarts a node that crashes (at most ``restarts`` times), ends the
 graph when a node marked ``until_exit`` (the bag player) exits, and shuts the
-others down cleanly (SIGINT, then SIGTERM, then SIGKILL).
+others down cleanly (SIGINT, then SIGTERM, then SIGKILL). At the end it says how
+much CPU each node used while the graph ran (user + system time from
+/proc/<pid>/stat, summed over a node's restarts, its teardown not counted): one
+line on stderr and, with a log directory, ``cpu.json`` there.
 
 ROS-free: it runs the executables that `ros2 run artrack_nodes <name>` runs
 (install/artrack_nodes/lib/artrack_nodes/<name>), found through
@@ -16,6 +19,7 @@ graph for real ROS installs is src/artrack_nodes/launch/tracking.launch.py.
 from __future__ import annotations
 
 import fnmatch
+import json
 import os
 import shutil
 import signal
@@ -112,6 +116,7 @@ class Launcher:
         self.stopping = False
         self.exit_codes: dict[str, int] = {}
         self.logs: list = []
+        self.cpu_s: dict[str, dict[int, float]] = {}  # node -> {pid: CPU s at the last look}
 
     def _start(self, spec: NodeSpec) -> None:
         params = self.tmp / f"{spec.name}.yaml"
@@ -154,10 +159,24 @@ class Launcher:
                 signal.signal(s, handler)
         return result
 
+    def _look_at_cpu(self, name: str, proc: subprocess.Popen) -> None:
+        """Note a child's CPU time so far (an exited child not yet reaped still shows its final time)."""
+        t = process_cpu_s(proc.pid)
+        if t is not None:
+            self.cpu_s.setdefault(name, {})[proc.pid] = t
+
+    def cpu_by_node(self) -> dict[str, float]:
+        """CPU seconds (user + system) each node used, summed over its restarts, largest first."""
+        total = {name: sum(by_pid.values()) for name, by_pid in self.cpu_s.items()}
+        return dict(sorted(total.items(), key=lambda kv: -kv[1]))
+
     def _supervise(self) -> int | None:
         for spec in self.specs:
             proc = self.procs.get(spec.name)
-            if proc is None or proc.poll() is None:
+            if proc is None:
+                continue
+            self._look_at_cpu(spec.name, proc)
+            if proc.poll() is None:
                 continue
             code = proc.returncode
             self.exit_codes[spec.name] = code
@@ -175,6 +194,9 @@ class Launcher:
     def shutdown(self, grace_s: float = 5.0) -> None:
         """Stop every child (SIGINT, then SIGTERM, then SIGKILL), then close the log files and
         remove the parameter files' temporary directory."""
+        for name, proc in self.procs.items():
+            self._look_at_cpu(name, proc)  # (before the teardown)
+        self._report_cpu()
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
             alive = [p for p in self.procs.values() if p.poll() is None]
             if not alive:
@@ -188,6 +210,27 @@ class Launcher:
             log.close()
         self.logs.clear()
         shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+    def _report_cpu(self) -> None:
+        cpu = self.cpu_by_node()
+        if not cpu:
+            return
+        print("artrack launch: CPU s by node: " + ", ".join(f"{n} {t:.2f}" for n, t in cpu.items())
+              + f"; total {sum(cpu.values()):.2f}", file=sys.stderr)
+        if self.log_dir is not None:
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+            (self.log_dir / "cpu.json").write_text(json.dumps({"cpu_s": cpu}) + "\n")
+
+
+def process_cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of process ``pid`` (Linux /proc; None where there is none)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rindex(")") + 2:].split()  # (the command name may hold spaces)
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def launch(graph_path: str, overrides: dict[str, Any] | None = None, timeout_s: float | None = None,

@@ -73,13 +73,13 @@ class MarkerBuilder:
                                       nanosec=int(round((self.lifetime_s - sec) * 1e9))))
 
     def _blob_markers(self, header, ns: str, blobs, color) -> list:
-        out = []
-        for i, b in enumerate(blobs):
-            if not all_finite(b.mean, b.cov):
-                continue
-            d, R = ellipsoid(np.asarray(b.cov, float), self.sigmas)
-            out.append(self._marker(header, ns, i, SPHERE, d, color, pose=self._pose(b.mean, R), text=b.label))
-        return out
+        kept = [(i, b) for i, b in enumerate(blobs) if all_finite(b.mean, b.cov)]
+        if not kept:
+            return []
+        axes = [ellipsoid(np.asarray(b.cov, float), self.sigmas) for _, b in kept]
+        quats = Rotation.from_matrix(np.stack([R for _, R in axes])).as_quat()  # (one call for all)
+        return [self._marker(header, ns, i, SPHERE, d, color, pose=self._pose(b.mean, q=q), text=b.label)
+                for (i, b), (d, _), q in zip(kept, axes, quats, strict=True)]
 
     # ------------------------------------------------------------------ arrays
     def marker_array(self, est: BodyEstimate, frame_id: str, body_id: str = "0",

@@ -134,11 +134,11 @@ class BodyFrames:
         s = f"_{self.id}"
         out = [FrameTransform(world_frame, self.root, mid, R_root),
                FrameTransform(self.root, self.link_frame[root_link], R_root.T @ (p_root - mid), np.eye(3))]
-        for lk in body.links[1:]:
-            t, R = _rel(*poses[lk.parent], *poses[lk.name])
+        rel = [_rel(*poses[lk.parent], *poses[lk.name]) for lk in body.links[1:]]
+        angles = self._euler(np.stack([R for _, R in rel])) if rel else []
+        for lk, (t, R), (a, b, _) in zip(body.links[1:], rel, angles, strict=True):
             parent, child = self.link_frame[lk.parent], self.link_frame[lk.name]
             if lk.joint == "ball":
-                a, b, c = self._euler(R)
                 out += [FrameTransform(parent, f"{lk.name}_x{s}", t, _rx(a)),
                         FrameTransform(f"{lk.name}_x{s}", f"{lk.name}_y{s}", np.zeros(3), _ry(b)),
                         # Rz(c) up to rounding; the remainder keeps the composition exact
@@ -156,7 +156,8 @@ class BodyFrames:
 
     @staticmethod
     def _euler(R: np.ndarray) -> np.ndarray:
-        """Intrinsic x-y-z angles: R = Rx(a) Ry(b) Rz(c)."""
+        """Intrinsic x-y-z angles: R = Rx(a) Ry(b) Rz(c); R (3, 3) or a stack (N, 3, 3) (one scipy call,
+        the same values as one by one)."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # gimbal lock: still a valid decomposition
             return Rotation.from_matrix(R).as_euler("XYZ")
@@ -167,21 +168,27 @@ class BodyFrames:
         poses = self._poses(est)
         s = f"_{self.id}"
         names, values = [], []
-        for lk in self.body.links[1:]:
-            _, R = _rel(*poses[lk.parent], *poses[lk.name])
+        links = self.body.links[1:]
+        if not links:
+            return names, np.zeros(0)
+        R = np.stack([_rel(*poses[lk.parent], *poses[lk.name])[1] for lk in links])
+        angles, rotvecs = self._euler(R), Rotation.from_matrix(R).as_rotvec()
+        for lk, abc, rv in zip(links, angles, rotvecs, strict=True):
             if lk.joint == "ball":
                 names += [f"{lk.name}_x{s}", f"{lk.name}_y{s}", f"{lk.name}_z{s}"]
-                values += list(self._euler(R))
+                values += list(abc)
             else:
                 names.append(f"{lk.name}{s}")
-                values.append(float(Rotation.from_matrix(R).as_rotvec() @ lk.axis))
+                values.append(float(rv @ lk.axis))
         return names, np.asarray(values, float)
 
     # ------------------------------------------------------------------ URDF
-    def dimensions(self, est: BodyEstimate) -> np.ndarray:
+    def dimensions(self, est: BodyEstimate, transforms: list[FrameTransform] | None = None) -> np.ndarray:
         """(L + J, 3) link offsets in their parent frames and joint points in their link frames,
-        as measured on this estimate (what the URDF states)."""
-        return np.array([tf.translation for tf in self.transforms(est, "world")[1:]], float)
+        as measured on this estimate (what the URDF states); ``transforms``: its :meth:`transforms`
+        if already computed."""
+        tfs = self.transforms(est, "world") if transforms is None else transforms
+        return np.array([tf.translation for tf in tfs[1:]], float)
 
     def urdf(self, est: BodyEstimate) -> str:
         """URDF of the tracked body: link offsets and joint points measured on ``est``, bones of

@@ -128,21 +128,21 @@ class BodyPublisherNode(Node):
             body_id = f"{self.p['id_prefix']}{int(msg.body_id)}"
             frames = self._body_frames(body_id)
             publishable = frames.publishable(est)
-            if publishable:
-                frames.transforms(est, msg.header.frame_id)  # raises on a body that does not fit the model
+            world = msg.header.frame_id or "world"
+            # (raises on a body that does not fit the model)
+            transforms = frames.transforms(est, world) if publishable else []
         except (ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad TrackedBody on {BODY_TOPIC}: {exc}")
             self.diag.drop()
             return
         f = msgs()
-        world = msg.header.frame_id or "world"
         self.tracked_pub.publish(ids_list_msg(f, [body_id] if publishable else [], est.stamp_ns, world))
         if publishable:
             if self.p["publish_tf"]:
-                self.tf_pub.publish(tf_message(f, frames.transforms(est, world), est.stamp_ns))
+                self.tf_pub.publish(tf_message(f, transforms, est.stamp_ns))
             names, values = frames.joint_state(est)
             self.joint_pubs[body_id].publish(joint_state_msg(f, names, values, est.stamp_ns))
-            self._maybe_urdf(body_id, frames, est)
+            self._maybe_urdf(body_id, frames, est, transforms)
         if self.p["publish_markers"]:
             self.marker_pub.publish(self.markers.marker_array(est, world, body_id, self.predictions.get(est.stamp_ns)))
             self.pose_pub.publish(self.markers.pose_array(est, world))
@@ -155,8 +155,8 @@ class BodyPublisherNode(Node):
             self.diag.warn(f"body {body_id} initializing")
         self.diag.processed(time.monotonic() - t0)
 
-    def _maybe_urdf(self, body_id: str, frames: BodyFrames, est) -> None:
-        dims = frames.dimensions(est)
+    def _maybe_urdf(self, body_id: str, frames: BodyFrames, est, transforms) -> None:
+        dims = frames.dimensions(est, transforms)
         last = self.urdf_dims.get(body_id)
         if last is not None and abs(dims - last).max() <= float(self.p["urdf_tolerance_m"]):
             return
