@@ -309,18 +309,21 @@ def phases_text(rows: list[dict]) -> str:
 
 
 def run(path: Path, name: str, estimator: str, feedback: bool, body, true_start: int | None = None,
-        every: int = 1, refine_passes: int = 0, refine_min_interval_s: float = 0.05) -> dict:
+        every: int = 1, refine_passes: int = 0, refine_min_interval_s: float = 0.05,
+        startup_refine_frames: int | None = None) -> dict:
     """One closed-loop run; ``true_start``: restart from the true pose at that frame index and
     score only the frames from there on (the loop's drift from a correct start). ``every`` k > 1:
     once the loop tracks, it is given every k-th frame only (a loop or camera k times slower than
     the scene; the frames before, while the background seeds, all go in); the scores, the tracked
-    share and the frame rate are over the frames given. ``refine_passes``: the pipeline's
-    (``PipelineConfig.refine_passes``)."""
+    share and the frame rate are over the frames given. ``refine_passes``, ``startup_refine_frames``:
+    the pipeline's (``PipelineConfig``; None: its default)."""
     scene = read_scene(path)
     truth = {int(s): j for s, j in zip(scene.truth.stamps, scene.truth.joints, strict=True)}
     kind, _, extra = estimator.partition("+")  # 'baseline+edges': with the edge features fused
     config = load_pipeline_config(estimator=kind, feedback=feedback, edges=extra == "edges")
     config.refine_passes, config.refine_min_interval_s = refine_passes, refine_min_interval_s
+    if startup_refine_frames is not None:
+        config.startup_refine_frames = startup_refine_frames
     pipe = ClosedLoopPipeline(body, scene.cameras, config)
     frames = list(scene.frames())  # decode before timing
     if true_start is not None:
@@ -381,6 +384,9 @@ def main() -> int:
                     help="frames at least --refine-min-interval apart go round the loop up to K more times "
                          "(PipelineConfig.refine_passes; default 0)")
     ap.add_argument("--refine-min-interval", type=float, default=0.05, metavar="S")
+    ap.add_argument("--startup-refine-frames", type=int, default=None, metavar="N",
+                    help="the N frames after a track's first go round the loop more times "
+                         "(PipelineConfig.startup_refine_frames; default: the pipeline's, 10; 0: off)")
     ap.add_argument("--cache", default="/tmp/artrack_bench")
     ap.add_argument("--empty-seed", type=float, default=0.0, metavar="S",
                     help="diagnosis: every camera shows the empty room for the first S seconds (the person moves "
@@ -395,8 +401,9 @@ def main() -> int:
     args = ap.parse_args()
     if not args.empty_seed >= 0:
         ap.error(f"--empty-seed must be >= 0 seconds, got {args.empty_seed}")
-    if args.every < 1 or args.refine_passes < 0 or not args.refine_min_interval >= 0:
-        ap.error("--every must be >= 1, --refine-passes and --refine-min-interval >= 0")
+    if args.every < 1 or args.refine_passes < 0 or not args.refine_min_interval >= 0 or (
+            args.startup_refine_frames is not None and args.startup_refine_frames < 0):
+        ap.error("--every must be >= 1, --refine-passes, --refine-min-interval and --startup-refine-frames >= 0")
     before = load_rows(args.compare) if args.compare else None
     seeds = args.seeds or [args.seed]
     body = load_body_model()
@@ -419,9 +426,10 @@ def main() -> int:
                     mpjpe, limbs = [], []
                     for sd, path in paths.items():
                         r = run(path, name, est, fb == "on", track_body, args.true_start, args.every,
-                                args.refine_passes, args.refine_min_interval)
+                                args.refine_passes, args.refine_min_interval, args.startup_refine_frames)
                         rows.append({"scene": name, "cameras": n_cam, "estimator": est, "feedback": fb,
-                                     "seed": sd, "every": args.every, "refine_passes": args.refine_passes, **r})
+                                     "seed": sd, "every": args.every, "refine_passes": args.refine_passes,
+                                     "startup_refine_frames": args.startup_refine_frames, **r})
                         mpjpe.append(r["mpjpe_mm"])
                         limbs.append(r["limbs_mm"])
                         tag = "" if len(seeds) == 1 else f" s{sd}"

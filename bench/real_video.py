@@ -248,6 +248,8 @@ def main() -> int:
     ap.add_argument("--head-off-m", type=float, default=0.35, help="head-to-marker distance counted as off, m")
     ap.add_argument("--overlay-png", type=Path, default=None, help="montage: 4 views x 4 frames")
     ap.add_argument("--overlay-mp4", type=Path, default=None, help="video of the 4 views, all frames")
+    ap.add_argument("--startup-refine-frames", type=int, default=None, metavar="N",
+                    help="PipelineConfig.startup_refine_frames (default: the pipeline's, 10; 0: off)")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args()
     try:
@@ -273,6 +275,8 @@ def run(args) -> int:
     body = load_body_model(args.body_model)
     config = load_pipeline_config(fps=fps_clip, blob_config=args.blob_config, skeleton_config=args.skeleton_config,
                                   edges=args.edges, edge_config=args.edge_config)
+    if args.startup_refine_frames is not None:
+        config.startup_refine_frames = args.startup_refine_frames
     t0 = time.perf_counter()
     refs = reference_foreground(frames)
     ref_ms = (time.perf_counter() - t0) * 1e3 / len(frames)

@@ -64,7 +64,6 @@ def test_out_of_range_parameter_stops_the_node_with_one_line(env):
 @pytest.mark.parametrize("node, args", [
     ("skeleton", ["-p", "refine_passes:=2"]),  # free-running (lockstep false by default)
     ("skeleton", ["-p", "refine_passes:=2", "-p", "lockstep:=true", "-p", "edges:=true"]),
-    ("blob_features", ["-p", "refine_passes:=2"]),
 ])
 def test_refinement_outside_a_lockstep_blob_graph_stops_the_node_with_one_line(env, node, args):
     _assert_stops_with_one_line(env, node, args, "refine_passes")

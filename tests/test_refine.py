@@ -1,8 +1,10 @@
-"""The loop iterated within a frame (``PipelineConfig.refine_passes``, ``ClosedLoopPipeline.step``).
+"""The loop iterated within a frame (``PipelineConfig.refine_passes``, ``startup_refine_frames``,
+``ClosedLoopPipeline.step``).
 
 A synthetic scene (4 cameras, 320x240, seed 3) is given to the offline pipeline at its own 30
 frames/s until the body is found, then every third frame only: a loop or camera at 10 frames/s,
-about what the free-running graph manages on a 2-core machine."""
+about what the free-running graph manages on a 2-core machine. The tests of ``refine_passes`` turn
+the start-up refinement off, so that each rule is seen alone; the last ones test the start-up rule."""
 
 from __future__ import annotations
 
@@ -30,9 +32,11 @@ def scene(body):
     return scene_cameras(cfg), list(generate_scene(cfg, body))
 
 
-def pipeline(body, cameras, refine_passes: int, refine_min_interval_s: float = 0.05) -> ClosedLoopPipeline:
+def pipeline(body, cameras, refine_passes: int, refine_min_interval_s: float = 0.05,
+             startup_refine_frames: int = 0, startup_refine_passes: int = 2) -> ClosedLoopPipeline:
     config = load_pipeline_config()
     config.refine_passes, config.refine_min_interval_s = refine_passes, refine_min_interval_s
+    config.startup_refine_frames, config.startup_refine_passes = startup_refine_frames, startup_refine_passes
     return ClosedLoopPipeline(body, cameras, config)
 
 
@@ -131,3 +135,30 @@ def test_bad_refinement_settings_are_refused(body, scene):
         pipeline(body, cameras, -1)
     with pytest.raises(InputError, match="refine_min_interval_s"):
         pipeline(body, cameras, 1, float("nan"))
+    with pytest.raises(InputError, match="startup_refine_frames"):
+        pipeline(body, cameras, 0, startup_refine_frames=-1)
+
+
+def test_the_first_frames_of_a_track_go_round_again(body, scene, first_tracked):
+    """``startup_refine_frames`` 10, ``startup_refine_passes`` 2 (the defaults), every frame at 30
+    frames/s: the frame a track starts on goes round once, the ten after it three times, the rest
+    once; the first frames' body is nearer the truth than the plain loop's, which takes ~10 frames
+    to settle from the crude start-up pose. Measured here (seed 3, the 10 frames after the start):
+    MPJPE 39.6 -> 24.0 mm; bench/closed_loop.py, default scene, seeds 1-26, the first 10 tracked
+    frames 52.1 -> 37.2 mm."""
+    cameras, frames = scene
+    default = load_pipeline_config()
+    assert (default.startup_refine_frames, default.startup_refine_passes) == (10, 2)
+    plain, young = pipeline(body, cameras, 0), pipeline(body, cameras, 0, startup_refine_frames=10)
+    errors = {0: [], 10: []}
+    for f in frames[:first_tracked + 16]:
+        a, b = plain.step(f.stamp_ns, f.images), young.step(f.stamp_ns, f.images)
+        assert b.passes == (3 if first_tracked < f.index <= first_tracked + 10 else 1), f.index
+        if first_tracked < f.index <= first_tracked + 10:
+            errors[0].append(np.linalg.norm(a.estimate.joints - f.joints, axis=1).mean())
+            errors[10].append(np.linalg.norm(b.estimate.joints - f.joints, axis=1).mean())
+        elif f.index <= first_tracked:
+            np.testing.assert_array_equal(a.estimate.joints, b.estimate.joints)
+    mpjpe = {k: 1e3 * float(np.mean(v)) for k, v in errors.items()}
+    print(f"the 10 frames after the start: plain loop {mpjpe[0]:.1f} mm, refined {mpjpe[10]:.1f} mm")
+    assert mpjpe[10] < 0.8 * mpjpe[0]

@@ -208,9 +208,11 @@ def _finish_track_out(tmp: Path, out: Path) -> None:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
-    if args.refine_passes < 0 or not args.refine_min_interval >= 0:
-        raise InputError(f"--refine-passes {args.refine_passes} / --refine-min-interval {args.refine_min_interval:g}: "
-                         "must be >= 0")
+    for flag, value in (("--refine-passes", args.refine_passes), ("--refine-min-interval", args.refine_min_interval),
+                        ("--startup-refine-frames", args.startup_refine_frames),
+                        ("--startup-refine-passes", args.startup_refine_passes)):
+        if not value >= 0:
+            raise InputError(f"{flag} {value:g}: must be >= 0")
     out = Path(args.out)
     _check_track_out(out)
     cameras, frames, total, input_fps = _open_input(args)
@@ -223,6 +225,7 @@ def cmd_track(args: argparse.Namespace) -> int:
                                   blob_config=args.blob_config, skeleton_config=args.skeleton_config,
                                   edges=args.edges, edge_config=args.edge_config)
     config.refine_passes, config.refine_min_interval_s = args.refine_passes, args.refine_min_interval
+    config.startup_refine_frames, config.startup_refine_passes = args.startup_refine_frames, args.startup_refine_passes
     pipe = ClosedLoopPipeline(body, cameras, config)
     tmp, created = _start_track_out(out)
     try:
@@ -445,6 +448,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "refine_passes, lockstep; default 0)")
     t.add_argument("--refine-min-interval", type=float, default=0.05, metavar="S",
                    help="frame interval, s, from which --refine-passes applies (default 0.05: below 20 frames/s)")
+    t.add_argument("--startup-refine-frames", type=int, default=10, metavar="N",
+                   help="the N frames after the one a track started on go round the loop --startup-refine-passes "
+                        "more times (the start-up pose is crude; not with --edges; 0: off; default 10)")
+    t.add_argument("--startup-refine-passes", type=int, default=2, metavar="K",
+                   help="extra passes of those frames (default 2)")
     t.add_argument("--blob-config", default=None)
     t.add_argument("--skeleton-config", default=None)
     t.add_argument("--body-model", default=None)

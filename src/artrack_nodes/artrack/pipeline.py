@@ -69,15 +69,39 @@ class PipelineConfig:
     #: more times, each pass from the same state with the last pass's body as the priors; 0 = off
     refine_passes: int = 0
     refine_min_interval_s: float = 0.05
+    #: the same at the start of a track: the ``startup_refine_frames`` frames after the one a track
+    #: started on go round the loop ``startup_refine_passes`` more times (at least), whatever their
+    #: interval. The start-up pose is crude (skin blobs matched across views, the rest pose for the
+    #: rest), so the first priors land off the limbs, and the loop, one iteration a frame, took ~10
+    #: frames to settle on the body (docs/HISTORY.md, stop 62). Not with edges (the edge stages'
+    #: warm-up covers those frames). 0 = off.
+    startup_refine_frames: int = 10
+    startup_refine_passes: int = 2
 
 
-def refine_passes(config: PipelineConfig, previous_stamp_ns: int | None, stamp_ns: int) -> int:
-    """How many more times a frame goes round the loop (``PipelineConfig.refine_passes``): none
-    for the first frame (``previous_stamp_ns`` None) or one less than ``refine_min_interval_s``
-    after the previous frame. The offline pipeline and the skeleton node decide by this."""
-    if config.refine_passes == 0 or previous_stamp_ns is None:
-        return 0
-    return config.refine_passes if (stamp_ns - previous_stamp_ns) * 1e-9 >= config.refine_min_interval_s else 0
+def refine_passes(config: PipelineConfig, previous_stamp_ns: int | None, stamp_ns: int,
+                  track_frames: int = 0) -> int:
+    """How many more times a frame goes round the loop: ``refine_passes`` for a frame at least
+    ``refine_min_interval_s`` after the previous one (none for the first frame, ``previous_stamp_ns``
+    None), and at least ``startup_refine_passes`` while the track is young: ``track_frames``, the
+    frames just before this one whose body was :func:`refinable`, between 1 and
+    ``startup_refine_frames`` (not with edges). The offline pipeline and the skeleton node decide
+    by this."""
+    passes = 0
+    if (config.refine_passes and previous_stamp_ns is not None
+            and (stamp_ns - previous_stamp_ns) * 1e-9 >= config.refine_min_interval_s):
+        passes = config.refine_passes
+    if not config.edges and 1 <= track_frames <= config.startup_refine_frames:
+        passes = max(passes, config.startup_refine_passes)
+    return passes
+
+
+def check_refinement(config: PipelineConfig) -> None:
+    """InputError (one line naming the option) for negative refinement settings."""
+    for name in ("refine_passes", "refine_min_interval_s", "startup_refine_frames", "startup_refine_passes"):
+        value = getattr(config, name)
+        if not value >= 0:
+            raise InputError(f"pipeline: {name} must be >= 0, got {value}")
 
 
 def refinable(estimate: BodyEstimate) -> bool:
@@ -231,9 +255,8 @@ class ClosedLoopPipeline:
         self.priors: dict[str, list[Prior2D]] = {}
         self.frames = 0
         self.last_stamp_ns: int | None = None  # the previous frame's (refine_min_interval_s)
-        if self.config.refine_passes < 0 or not self.config.refine_min_interval_s >= 0:
-            raise InputError(f"pipeline: refine_passes must be >= 0 and refine_min_interval_s >= 0, got "
-                             f"{self.config.refine_passes} and {self.config.refine_min_interval_s}")
+        self.track_frames = 0  # frames in a row whose body was refinable (startup_refine_frames)
+        check_refinement(self.config)
         # shared, never changed by a step: not copied by the refinement's snapshots
         self._shared = [body, self.config, *self.cameras]
 
@@ -248,8 +271,11 @@ class ClosedLoopPipeline:
         is one labelling / body-fit iteration a frame, which converges while the body moves little
         between frames; when frames come further apart (a slow loop or camera) the prediction
         lands off the limbs, the labels follow it, and more iterations on the same images pull
-        the body back onto them. The timings are summed over the passes."""
-        extra = refine_passes(self.config, self.last_stamp_ns, stamp_ns)
+        the body back onto them. The same holds for the first frames of a track, whose priors come
+        from the crude start-up pose: the ``startup_refine_frames`` frames after the one a track
+        started on go round ``startup_refine_passes`` more times. The timings are summed over the
+        passes."""
+        extra = refine_passes(self.config, self.last_stamp_ns, stamp_ns, self.track_frames)
         total: dict[str, float] = {}
         for done in range(1, extra + 2):
             snapshot = self._snapshot() if done <= extra else None
@@ -262,6 +288,7 @@ class ClosedLoopPipeline:
             self._feed_back(result.estimate)
         result.timings_ms, result.passes = total, done
         self.last_stamp_ns = int(stamp_ns)
+        self.track_frames = self.track_frames + 1 if refinable(result.estimate) else 0
         return result
 
     def _snapshot(self) -> tuple:
@@ -330,6 +357,7 @@ class ClosedLoopPipeline:
             stage.relearn()
         self._feed_back(estimator.predict(int(stamp_ns)))
         self.frames = max(self.frames, 1)  # the priors are fresh: the blob stages use them
+        self.track_frames = self.config.startup_refine_frames + 1  # a known body: no start-up refinement
 
 
 def load_pipeline_config(

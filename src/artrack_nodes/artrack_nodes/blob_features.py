@@ -3,12 +3,12 @@
 Subscribes /cameras/<cam>/image_raw and /cameras/<cam>/blob_priors, publishes
 /cameras/<cam>/blobs. In lockstep mode every image after the first waits for
 the prior that predicts it (so results are reproducible); in free-running mode
-the newest prior is used and its staleness reported in the message. With ``refine_passes``
-> 0 (lockstep, as the skeleton's), priors stamped with the frame just
-processed send that frame round again: the node goes back to its state before the
-frame and labels the same image with them (``ClosedLoopPipeline.step``). Without it, such priors
-are logged once and left unanswered (the skeleton gives the refinement up after its
-``refine_timeout_s``).
+the newest prior is used and its staleness reported in the message. In lockstep (with
+``answer_refinements``, the default) priors stamped with the frame just processed send that frame
+round again (the skeleton's ``refine_passes`` and ``startup_refine_frames``): the node goes back
+to its state before the frame, a copy of which it keeps every frame (~1-2 ms), and labels the same
+image with them (``ClosedLoopPipeline.step``). Without it, such priors are logged once and left
+unanswered (the skeleton gives the refinement up after its ``refine_timeout_s``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import time
 from rclpy.node import Node
 
 from artrack.body_model import load_body_model
-from artrack.errors import ArtrackError, InputError
+from artrack.errors import ArtrackError
 from artrack.messages import blob_array_msg, priors_from_msg
 from artrack.pipeline import BlobStage, load_pipeline_config, state_copy
 
@@ -45,13 +45,12 @@ PARAMS = [
     ("prior_timeout_s", 10.0, "lockstep: give up waiting for a prior after this long, s"),
     ("loop_wait_s", 0.5, "free-running: after a frame, wait up to this long for the skeleton's prior from it "
                          "before taking the newest image without one, s (0: every image as it comes)"),
-    ("refine_passes", 0, "lockstep, the skeleton's refine_passes: > 0 answers priors stamped with the frame just "
-                         "processed by labelling that frame again from the state before it"),
+    ("answer_refinements", True, "lockstep: keep a copy of the state before each frame and answer priors stamped "
+                                 "with the frame just processed (the skeleton's refinement) by labelling it again"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
     ("blob_config", "", "blob tracker tunables YAML (empty: config/blob_features.yaml)"),
 ]
-LIMITS = {"fps": (1.0, 1000.0), "prior_timeout_s": (0.0, 3600.0), "loop_wait_s": (0.0, 60.0),
-          "refine_passes": (0, 10)}
+LIMITS = {"fps": (1.0, 1000.0), "prior_timeout_s": (0.0, 3600.0), "loop_wait_s": (0.0, 60.0)}
 #: run-time changeable (ros2 param set): feedback on/off, the lockstep prior timeout
 RUNTIME = ("feedback", "prior_timeout_s")
 
@@ -78,10 +77,8 @@ class BlobFeaturesNode(Node):
         self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.prior_timeout_s, "prior",
                                 loop_wait_s=float(p["loop_wait_s"]))
         self.frames = 0
-        self.refine = int(p["refine_passes"]) > 0
-        if self.refine and not self.lockstep:
-            raise InputError("parameter 'refine_passes' needs 'lockstep' (a refined frame is labelled again from the "
-                             "state before it, which a free-running node has moved past)")
+        # (a free-running node has moved past the frame a refinement asks for: it never answers)
+        self.refine = bool(p["answer_refinements"]) and self.lockstep
         self.before = None  # refine: (stamp, image, state before that frame) of the frame last processed
         self.last_stamp: int | None = None  # the frame last processed
         self.told_no_refine = False  # a refinement's priors came without refine_passes (logged once)
@@ -115,7 +112,8 @@ class BlobFeaturesNode(Node):
         if not self.refine and stamp == self.last_stamp:
             if not self.told_no_refine:
                 self.get_logger().warning(f"priors for frame {stamp}, the frame just labelled (the skeleton refines "
-                                          "it): not labelled again, this node runs with refine_passes 0")
+                                          "it): not labelled again, this node runs without answer_refinements "
+                                          "in lockstep")
                 self.told_no_refine = True
             return
         self.queue.add_input(stamp, priors, received_ns(info))
