@@ -73,8 +73,8 @@ class PipelineConfig:
     #: started on go round the loop ``startup_refine_passes`` more times (at least), whatever their
     #: interval. The start-up pose is crude (skin blobs matched across views, the rest pose for the
     #: rest), so the first priors land off the limbs, and the loop, one iteration a frame, took ~10
-    #: frames to settle on the body (docs/HISTORY.md, stop 62). Not with edges (the edge stages'
-    #: warm-up covers those frames). 0 = off.
+    #: frames to settle on the body (docs/HISTORY.md, stop 62). Not with edges: the graph's
+    #: edge_features nodes do not measure a frame again, and offline does as the graph. 0 = off.
     startup_refine_frames: int = 10
     startup_refine_passes: int = 2
 

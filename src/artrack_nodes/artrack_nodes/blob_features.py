@@ -81,7 +81,7 @@ class BlobFeaturesNode(Node):
         self.refine = bool(p["answer_refinements"]) and self.lockstep
         self.before = None  # refine: (stamp, image, state before that frame) of the frame last processed
         self.last_stamp: int | None = None  # the frame last processed
-        self.told_no_refine = False  # a refinement's priors came without refine_passes (logged once)
+        self.told_no_refine = False  # a refinement's priors came without answer_refinements (logged once)
         self.refined = 0  # passes run again (diagnostics)
         self.diag = NodeDiagnostics(self, update=self._report)
         self.diag.set("prior_staleness_s", float("nan"))
