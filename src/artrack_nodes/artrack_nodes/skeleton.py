@@ -287,8 +287,7 @@ class SkeletonNode(Node):
         """The refinement pass awaited has not got every camera's blobs within refine_timeout_s: the
         previous pass stands (its body and prediction are published); refinement is switched off if no
         camera answered at all (their nodes do not label a frame again)."""
-        asked, stage, estimate, prediction, cameras = self.refine_fallback
-        stamp = self.refining[0]
+        asked, stamp = self.refine_fallback[0], self.refining[0]
         answered = sorted(self.pending.pop(stamp, {}))
         self.first_seen.pop(stamp, None)
         self.pending_edges.pop(stamp, None)
@@ -300,7 +299,12 @@ class SkeletonNode(Node):
             + ("; do the blob_features nodes run in lockstep with answer_refinements?" if not answered else ""))
         if not answered:
             self.config.refine_passes = self.config.startup_refine_frames = 0
-        self.stage = stage
+        self._previous_pass_stands(stamp)
+
+    def _previous_pass_stands(self, stamp: int) -> None:
+        """A refinement pass that failed or never came: the frame keeps the pass before it (that
+        pass's stage, body and prediction, ``refine_fallback``), which is published."""
+        _, self.stage, estimate, prediction, cameras = self.refine_fallback
         self._publish(stamp, estimate, prediction, cameras)
 
     def process(self, stamp: int, blobs_by_camera: dict, edges=None) -> None:
@@ -317,9 +321,8 @@ class SkeletonNode(Node):
             estimate, prediction = self.stage.step(stamp, blobs_by_camera, edges)
         except ArtrackError as exc:
             self.get_logger().error(f"frame {stamp}: {exc}")
-            if self.refine_fallback is not None:  # a refinement pass: the previous pass stands
-                _, self.stage, estimate, prediction, cameras = self.refine_fallback
-                self._publish(stamp, estimate, prediction, cameras)
+            if self.refine_fallback is not None:  # a refinement pass
+                self._previous_pass_stands(stamp)
             self.refining = None
             return
         self.diag.processed(time.monotonic() - t0)
