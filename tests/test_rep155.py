@@ -125,6 +125,22 @@ def test_urdf_and_joint_states_reproduce_the_tf_tree():
     assert len(names) == len(set(names)) == 8 * 3 + 6  # 8 ball joints, 6 hinges
 
 
+def test_joint_rotations_computed_once_give_the_same_tf_and_joint_states():
+    """body_publisher computes the links' relative rotations once for TF and JointState: the same
+    values as each computing its own."""
+    body = load_body_model()
+    est = estimate_at(body, random_pose(body, 5))
+    frames = BodyFrames(body, "0")
+    rotations = frames.joint_rotations(est)
+    assert len(rotations.relative) == len(rotations.angles) == len(body.links) - 1
+    for a, b in zip(frames.transforms(est, "world"), frames.transforms(est, "world", rotations), strict=True):
+        assert (a.parent, a.child) == (b.parent, b.child)
+        assert np.array_equal(a.translation, b.translation) and np.array_equal(a.rotation, b.rotation)
+    names, values = frames.joint_state(est)
+    names2, values2 = frames.joint_state(est, rotations)
+    assert names == names2 and np.array_equal(values, values2)
+
+
 def test_only_tracked_finite_bodies_are_published():
     body = load_body_model()
     est = estimate_at(body, body.rest_pose())

@@ -62,6 +62,15 @@ class FrameTransform:
         return Rotation.from_matrix(self.rotation).as_quat()
 
 
+@dataclass
+class JointRotations:
+    """:meth:`BodyFrames.joint_rotations`: per non-root link (model order) ``relative`` (translation
+    (3,), rotation (3, 3)) in its parent's frame and ``angles`` (L-1, 3) intrinsic x-y-z, rad."""
+
+    relative: list[tuple[np.ndarray, np.ndarray]]
+    angles: np.ndarray
+
+
 def _rel(p_parent, R_parent, p_child, R_child) -> tuple[np.ndarray, np.ndarray]:
     return R_parent.T @ (p_child - p_parent), R_parent.T @ R_child
 
@@ -124,8 +133,18 @@ class BodyFrames:
         return self._poses(est)[root][0].copy()
 
     # ------------------------------------------------------------------ TF
-    def transforms(self, est: BodyEstimate, world_frame: str) -> list[FrameTransform]:
-        """The body's TF tree, parent before child (world -> body_<id> -> links -> joints)."""
+    def joint_rotations(self, est: BodyEstimate) -> JointRotations:
+        """Each non-root link's pose in its parent's frame and its intrinsic x-y-z angles, once for
+        both :meth:`transforms` and :meth:`joint_state` (one scipy call for all links)."""
+        poses = self._poses(est)
+        rel = [_rel(*poses[lk.parent], *poses[lk.name]) for lk in self.body.links[1:]]
+        angles = self._euler(np.stack([R for _, R in rel])) if rel else np.zeros((0, 3))
+        return JointRotations(rel, angles)
+
+    def transforms(self, est: BodyEstimate, world_frame: str,
+                   rotations: JointRotations | None = None) -> list[FrameTransform]:
+        """The body's TF tree, parent before child (world -> body_<id> -> links -> joints);
+        ``rotations``: :meth:`joint_rotations` of ``est`` if already computed."""
         body = self.body
         poses = self._poses(est)
         root_link = body.link_names[0]
@@ -134,9 +153,8 @@ class BodyFrames:
         s = f"_{self.id}"
         out = [FrameTransform(world_frame, self.root, mid, R_root),
                FrameTransform(self.root, self.link_frame[root_link], R_root.T @ (p_root - mid), np.eye(3))]
-        rel = [_rel(*poses[lk.parent], *poses[lk.name]) for lk in body.links[1:]]
-        angles = self._euler(np.stack([R for _, R in rel])) if rel else []
-        for lk, (t, R), (a, b, _) in zip(body.links[1:], rel, angles, strict=True):
+        rot = self.joint_rotations(est) if rotations is None else rotations
+        for lk, (t, R), (a, b, _) in zip(body.links[1:], rot.relative, rot.angles, strict=True):
             parent, child = self.link_frame[lk.parent], self.link_frame[lk.name]
             if lk.joint == "ball":
                 out += [FrameTransform(parent, f"{lk.name}_x{s}", t, _rx(a)),
@@ -163,23 +181,25 @@ class BodyFrames:
             return Rotation.from_matrix(R).as_euler("XYZ")
 
     # ------------------------------------------------------------------ joint angles
-    def joint_state(self, est: BodyEstimate) -> tuple[list[str], np.ndarray]:
-        """Revolute joint names of the URDF and their angles (rad)."""
-        poses = self._poses(est)
+    def joint_state(self, est: BodyEstimate, rotations: JointRotations | None = None) -> tuple[list[str], np.ndarray]:
+        """Revolute joint names of the URDF and their angles (rad); ``rotations``: as for
+        :meth:`transforms`."""
         s = f"_{self.id}"
         names, values = [], []
         links = self.body.links[1:]
         if not links:
             return names, np.zeros(0)
-        R = np.stack([_rel(*poses[lk.parent], *poses[lk.name])[1] for lk in links])
-        angles, rotvecs = self._euler(R), Rotation.from_matrix(R).as_rotvec()
-        for lk, abc, rv in zip(links, angles, rotvecs, strict=True):
+        rot = self.joint_rotations(est) if rotations is None else rotations
+        hinges = [k for k, lk in enumerate(links) if lk.joint != "ball"]
+        rotvecs = dict(zip(hinges, Rotation.from_matrix(np.stack([rot.relative[k][1] for k in hinges])).as_rotvec(),
+                           strict=True)) if hinges else {}
+        for k, (lk, abc) in enumerate(zip(links, rot.angles, strict=True)):
             if lk.joint == "ball":
                 names += [f"{lk.name}_x{s}", f"{lk.name}_y{s}", f"{lk.name}_z{s}"]
                 values += list(abc)
             else:
                 names.append(f"{lk.name}{s}")
-                values.append(float(rv @ lk.axis))
+                values.append(float(rotvecs[k] @ lk.axis))
         return names, np.asarray(values, float)
 
     # ------------------------------------------------------------------ URDF

@@ -130,7 +130,8 @@ class BodyPublisherNode(Node):
             publishable = frames.publishable(est)
             world = msg.header.frame_id or "world"
             # (raises on a body that does not fit the model)
-            transforms = frames.transforms(est, world) if publishable else []
+            rotations = frames.joint_rotations(est) if publishable else None
+            transforms = frames.transforms(est, world, rotations) if publishable else []
         except (ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad TrackedBody on {BODY_TOPIC}: {exc}")
             self.diag.drop()
@@ -140,7 +141,7 @@ class BodyPublisherNode(Node):
         if publishable:
             if self.p["publish_tf"]:
                 self.tf_pub.publish(tf_message(f, transforms, est.stamp_ns))
-            names, values = frames.joint_state(est)
+            names, values = frames.joint_state(est, rotations)
             self.joint_pubs[body_id].publish(joint_state_msg(f, names, values, est.stamp_ns))
             self._maybe_urdf(body_id, frames, est, transforms)
         if self.p["publish_markers"]:
