@@ -185,7 +185,9 @@ def graph_run_edges(tmp_path_factory, env, small_scene, edge_config) -> Path:
 def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small_scene, env, tmp_path, edge_config):
     """edge_features nodes (one per camera) measure about the prediction; the skeleton fuses their
     statistics with the blobs: the same joints as `artrack track --edges`, and different from
-    blobs alone (the edges are really used, after their warm-up)."""
+    blobs alone (the edges are really used, after their warm-up). The start-up refinement runs with
+    the edges (stop 63): each refinement body on /artrack/refinement gets a second measurement of
+    its frame from every camera's edge_features node, as offline."""
     run_artrack(env, "track", str(small_scene), "--edges", "--edge-config", str(edge_config),
                 "--out", str(tmp_path / "offline"), "--quiet")
     run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "blobs"), "--quiet")
@@ -196,7 +198,10 @@ def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small
         counts = {}
         for topic, _, _ in reader.messages():
             counts[topic] = counts.get(topic, 0) + 1
-    assert all(counts.get(f"/cameras/{c}/edge_statistics", 0) == FRAMES for c in ("cam01", "cam02", "cam03", "cam04"))
+    refined = counts.get("/artrack/refinement", 0)
+    assert refined == 20, "the 10 frames after the start-up frame, 2 more passes each"
+    assert all(counts.get(f"/cameras/{c}/edge_statistics", 0) == FRAMES + refined
+               for c in ("cam01", "cam02", "cam03", "cam04"))
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ import pytest
 
 from artrack.body_model import load_body_model
 from artrack.errors import InputError
-from artrack.pipeline import ClosedLoopPipeline, load_pipeline_config
+from artrack.pipeline import ClosedLoopPipeline, load_pipeline_config, refine_passes
 from artrack.synth import SceneConfig, generate_scene, scene_cameras
 
 EVERY = 3  # once tracking: one frame in three (100 ms apart)
@@ -162,3 +162,11 @@ def test_the_first_frames_of_a_track_go_round_again(body, scene, first_tracked):
     mpjpe = {k: 1e3 * float(np.mean(v)) for k, v in errors.items()}
     print(f"the 10 frames after the start: plain loop {mpjpe[0]:.1f} mm, refined {mpjpe[10]:.1f} mm")
     assert mpjpe[10] < 0.8 * mpjpe[0]
+
+
+def test_the_start_up_rule_holds_with_edges_too():
+    """Since stop 63 the edge_features nodes measure a refined frame again, so the start-up
+    refinement applies with the edges fused as without (offline and in the graph alike)."""
+    for edges in (False, True):
+        config = load_pipeline_config(edges=edges)
+        assert [refine_passes(config, 0, 33_000_000, n) for n in (0, 1, 10, 11)] == [0, 2, 2, 0], edges

@@ -64,7 +64,7 @@ class PipelineConfig:
     edges: bool = False
     edge: EdgeTrackerConfig = field(default_factory=EdgeTrackerConfig)
     #: the loop iterated within a frame (:meth:`ClosedLoopPipeline.step`; in the graph the skeleton's
-    #: and blob_features' ``refine_passes``, lockstep, without edges): a frame
+    #: ``refine_passes``, lockstep, the feature nodes answering): a frame
     #: that comes at least ``refine_min_interval_s`` after the previous one is processed this many
     #: more times, each pass from the same state with the last pass's body as the priors; 0 = off
     refine_passes: int = 0
@@ -73,8 +73,8 @@ class PipelineConfig:
     #: started on go round the loop ``startup_refine_passes`` more times (at least), whatever their
     #: interval. The start-up pose is crude (skin blobs matched across views, the rest pose for the
     #: rest), so the first priors land off the limbs, and the loop, one iteration a frame, took ~10
-    #: frames to settle on the body (docs/HISTORY.md, stop 62). Not with edges: the graph's
-    #: edge_features nodes do not measure a frame again, and offline does as the graph. 0 = off.
+    #: frames to settle on the body (docs/HISTORY.md, stop 62). With edges too since stop 63 (the
+    #: graph's edge_features nodes measure a refined frame again, as blob_features label it). 0 = off.
     startup_refine_frames: int = 10
     startup_refine_passes: int = 2
 
@@ -85,13 +85,12 @@ def refine_passes(config: PipelineConfig, previous_stamp_ns: int | None, stamp_n
     ``refine_min_interval_s`` after the previous one (none for the first frame, ``previous_stamp_ns``
     None), and at least ``startup_refine_passes`` while the track is young: ``track_frames``, the
     frames just before this one whose body was :func:`refinable`, between 1 and
-    ``startup_refine_frames`` (not with edges). The offline pipeline and the skeleton node decide
-    by this."""
+    ``startup_refine_frames``. The offline pipeline and the skeleton node decide by this."""
     passes = 0
     if (config.refine_passes and previous_stamp_ns is not None
             and (stamp_ns - previous_stamp_ns) * 1e-9 >= config.refine_min_interval_s):
         passes = config.refine_passes
-    if not config.edges and 1 <= track_frames <= config.startup_refine_frames:
+    if 1 <= track_frames <= config.startup_refine_frames:
         passes = max(passes, config.startup_refine_passes)
     return passes
 

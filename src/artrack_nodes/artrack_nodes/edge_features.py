@@ -7,7 +7,12 @@ normals with edge polarity, robust per-link motion statistics, eqs. 7-10, Algori
 cycles), measures them at the pose reached (artrack.edge_fusion.EdgeStage) and publishes
 /cameras/<cam>/edge_statistics (artrack_msgs/LinkEdgeStatistics, information form; empty when
 there is no prediction with links), which the skeleton node fuses with the blobs ("Fusion").
-In lockstep mode every image after the first waits for the prediction of its frame.
+In lockstep mode every image after the first waits for the prediction of its frame. In lockstep
+(with ``answer_refinements``, the default) a body on /artrack/refinement stamped with the frame just
+measured sends that frame round again (the skeleton's ``refine_passes`` and
+``startup_refine_frames``): the node goes back to its state before the frame, a copy of which it
+keeps every frame, and measures the same image about that body, as blob_features labels it again
+(``ClosedLoopPipeline.step``).
 """
 
 from __future__ import annotations
@@ -23,12 +28,13 @@ from artrack.edge_fusion import EdgeStage
 from artrack.edge_tracker import EdgeTrackerConfig
 from artrack.errors import ArtrackError
 from artrack.messages import body_from_msg, edge_stats_msg
-from artrack.pipeline import link_poses
+from artrack.pipeline import link_poses, state_copy
 
 from .common import (
     IMAGE_QOS_RELIABLE,
     IMAGE_QOS_SENSOR,
     PREDICTION_TOPIC,
+    REFINEMENT_TOPIC,
     RESULT_QOS,
     CameraRigListener,
     FrameQueue,
@@ -47,6 +53,9 @@ PARAMS = [
     ("prediction_timeout_s", 10.0, "lockstep: give up waiting for a prediction after this long, s"),
     ("loop_wait_s", 0.5, "free-running: after a frame, wait up to this long for the skeleton's prediction from it "
                          "before taking the newest image without one, s (0: every image as it comes)"),
+    ("answer_refinements", True, "lockstep: keep a copy of the state before each frame and answer the skeleton's "
+                                 "refinement bodies (/artrack/refinement) stamped with the frame just processed by "
+                                 "measuring it again"),
     ("body_model", "", "body model YAML (empty: config/body_model.yaml)"),
     ("edge_config", "", "edge tracker tunables YAML (empty: config/edge_features.yaml)"),
 ]
@@ -73,13 +82,25 @@ class EdgeFeaturesNode(Node):
                                  self.on_image, IMAGE_QOS_RELIABLE if self.lockstep else IMAGE_QOS_SENSOR)
         self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), PREDICTION_TOPIC, self.on_prediction,
                                  RESULT_QOS)
+        # (a free-running node has moved past the frame a refinement asks for: it never answers)
+        self.refine = bool(p["answer_refinements"]) and self.lockstep
+        self.before = None  # refine: (stamp, image, state before that frame) of the frame last processed
+        self.refined = 0  # passes measured again (diagnostics)
+        if self.refine:
+            self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), REFINEMENT_TOPIC, self.on_refinement,
+                                     RESULT_QOS)
         self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.timeout_s, "prediction",
                                 loop_wait_s=float(p["loop_wait_s"]))
         self.frames = 0
-        self.diag = NodeDiagnostics(self, update=lambda d: d.set("images_skipped", self.queue.skipped))
+        self.diag = NodeDiagnostics(self, update=self._report)
         self.diag.set("prediction_staleness_s", float("nan"))
         self.create_timer(0.1, self.process_queue)
         self.get_logger().info(f"edge_features for {self.camera} (lockstep={self.lockstep})")
+
+    def _report(self, diag) -> None:
+        diag.set("images_skipped", self.queue.skipped)
+        if self.refine:
+            diag.set("passes_refined", self.refined)
 
     def on_camera(self, cameras) -> None:
         self.stage = EdgeStage(cameras[0], self.body, self.edge_config)
@@ -92,36 +113,66 @@ class EdgeFeaturesNode(Node):
         else:
             self.diag.drop()
 
-    def on_prediction(self, msg, info) -> None:
+    def _reference(self, msg, topic: str):
+        """(stamp, link poses or None, status) of a TrackedBody; None (logged) if it is bad."""
         try:
             body = body_from_msg(msg)
             poses = link_poses(body)
             if poses is not None and len(poses) != len(self.body.links):
                 raise ValueError(f"field 'links' has {len(poses)} links, the body model {len(self.body.links)}")
         except (ValueError, AttributeError) as exc:
-            self.get_logger().error(f"dropped bad prediction on {PREDICTION_TOPIC}: {exc}")
+            self.get_logger().error(f"dropped bad prediction on {topic}: {exc}")
+            return None
+        return body.stamp_ns, poses, body.status
+
+    def on_prediction(self, msg, info) -> None:
+        ref = self._reference(msg, PREDICTION_TOPIC)
+        if ref is None:
             return
-        self.queue.add_input(body.stamp_ns, (poses, body.status), received_ns(info))
+        self.queue.add_input(ref[0], ref[1:], received_ns(info))
         self.process_queue()
+
+    def on_refinement(self, msg) -> None:
+        """The skeleton's body of a frame's previous pass: the frame last measured, measured again
+        from the state before it about that body; the statistics go out with the frame's stamp."""
+        ref = self._reference(msg, REFINEMENT_TOPIC)
+        if ref is None or self.before is None or ref[0] != self.before[0] or self.stage is None:
+            return
+        stamp, image, state = self.before
+        self.stage = state_copy(state, self._shared())  # (the state is kept for a further pass)
+        if self._measure(stamp, image, ref[1], ref[2], stamp, ", refinement"):
+            self.refined += 1
+
+    def _shared(self) -> list:
+        """What a step never changes (state_copy): the body model, the camera, the tunables."""
+        return [self.body, self.stage.camera, self.edge_config]
 
     def process_queue(self) -> None:
         if self.stage is None:  # the camera's calibration has not arrived yet
             return
         for stamp, image, found in self.queue.ready(lambda: self.frames == 0):
             ref_stamp, (reference, status) = found if found is not None else (0, (None, None))
-            t0 = time.monotonic()
-            try:
-                stats = self.stage.step(image, reference, status) if reference is not None else None
-            except (ArtrackError, ValueError) as exc:
-                self.get_logger().error(f"frame {stamp}: {exc}")
-                self.diag.drop()
-                continue
-            self.diag.processed(time.monotonic() - t0)
-            self.diag.set("prediction_staleness_s", (stamp - ref_stamp) * 1e-9 if reference is not None
-                          else float("nan"))
-            self.frames += 1
-            self.pub.publish(edge_stats_msg(msgs(), stamp, self.camera, f"{self.camera}_optical_frame",
-                                            self.body.link_names, stats, ref_stamp))
+            if self.refine:
+                self.before = (stamp, image, state_copy(self.stage, self._shared()))
+            if self._measure(stamp, image, reference, status, ref_stamp):
+                self.frames += 1
+
+    def _measure(self, stamp: int, image, reference, status, ref_stamp: int, context: str = "") -> bool:
+        """The edge statistics of one image about ``reference`` (link poses, None: no body),
+        published with the frame's stamp; False (logged, counted as a drop) on a bad image."""
+        t0 = time.monotonic()
+        try:
+            stats = self.stage.step(image, reference, status) if reference is not None else None
+        except (ArtrackError, ValueError) as exc:
+            self.get_logger().error(f"frame {stamp}{context}: {exc}")
+            self.diag.drop()
+            return False
+        self.diag.processed(time.monotonic() - t0)
+        self.diag.set("prediction_staleness_s", (stamp - ref_stamp) * 1e-9 if reference is not None
+                      else float("nan"))
+        self.pub.publish(edge_stats_msg(msgs(), stamp, self.camera, f"{self.camera}_optical_frame",
+                                        self.body.link_names, stats, ref_stamp))
+        return True
 
 
 def main(args=None) -> None:

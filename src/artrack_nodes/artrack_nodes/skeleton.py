@@ -14,15 +14,16 @@ from the 15 joints of the bodies arriving there; in lockstep, while it is lost o
 that topic has a publisher, each frame also waits (up to lockstep_timeout_s) for that topic's body
 of the same frame (the loose_limbed node in lockstep answers every frame), so the re-seed comes
 before the frame is estimated and the replay stays reproducible.
-With ``refine_passes`` k > 0 (lockstep, and the blob_features nodes' ``refine_passes`` > 0; not
-with edges), a tracked frame at least ``refine_min_interval_s`` after the previous one goes round
+With ``refine_passes`` k > 0 (lockstep; the feature nodes answer with ``answer_refinements``, their
+default), a tracked frame at least ``refine_min_interval_s`` after the previous one goes round
 the loop up to k more times, as in ``ClosedLoopPipeline.step``: the node goes back to its state
 before the frame, publishes the frame's body on /artrack/refinement (feedback_projection projects
-it with the frame's stamp), and waits for every camera's blobs of the same frame again; the last
-pass's body and prediction are published. The same (lockstep, no edges) for the
+it with the frame's stamp; edge_features nodes measure the frame again about it), and waits for
+every camera's blobs (and edge statistics) of the same frame again; the last pass's body and
+prediction are published. The same (lockstep) for the
 ``startup_refine_frames`` frames after the one a track started on, ``startup_refine_passes`` more
 times each, as offline. A pass whose blobs have not all come after
-``refine_timeout_s`` (a blob_features node restarted since the frame, or one run without
+``refine_timeout_s`` (a feature node restarted since the frame, or one run without
 ``answer_refinements``) is abandoned: the previous pass's body and prediction are published, and if no
 camera answered at all, refinement is switched off for the rest of the run (one warning line).
 """
@@ -74,14 +75,15 @@ PARAMS = [
     ("reseed_topic", "", "TrackedBody topic whose TRACKING bodies re-initialise a lost (or not yet started) "
                          "estimator, e.g. /artrack/loose_limbed/body (empty: off)"),
     ("refine_passes", 0, "lockstep: a tracked frame at least refine_min_interval_s after the previous one goes "
-                         "round the loop up to this many more times (blob_features refine_passes > 0 too; not with "
-                         "edges)"),
+                         "round the loop up to this many more times (the feature nodes answer with their "
+                         "answer_refinements)"),
     ("refine_min_interval_s", 0.05, "frame interval from which refine_passes applies, s"),
-    ("startup_refine_frames", 10, "lockstep, no edges: the frames after the one a track started on that go round "
+    ("startup_refine_frames", 10, "lockstep: the frames after the one a track started on that go round "
                                   "the loop startup_refine_passes more times (the start-up pose is crude); 0 = off; "
                                   "free-running nodes cannot go back: off there"),
     ("startup_refine_passes", 2, "extra passes of those frames"),
-    ("refine_timeout_s", 10.0, "a refinement pass whose blobs have not all come after this long is abandoned (the "
+    ("refine_timeout_s", 10.0, "a refinement pass whose blobs (or edge statistics) have not all come after this "
+                               "long is abandoned (the "
                                "previous pass is published; no camera answering switches refinement off), s"),
 ]
 #: re-seed bodies: reliable, volatile (a restarted skeleton must not re-seed from stale bodies)
@@ -105,12 +107,12 @@ class SkeletonNode(Node):
                                            skeleton_config=p["skeleton_config"])
         self.config.refine_passes = int(p["refine_passes"])
         self.config.refine_min_interval_s = float(p["refine_min_interval_s"])
-        self.config.edges = bool(p["edges"])  # (no start-up refinement with edges, as offline)
+        self.config.edges = bool(p["edges"])
         self.config.startup_refine_frames = int(p["startup_refine_frames"]) if self.lockstep else 0
         self.config.startup_refine_passes = int(p["startup_refine_passes"])
-        if self.config.refine_passes and not (self.lockstep and not bool(p["edges"])):
-            raise InputError("parameter 'refine_passes' needs 'lockstep' and no 'edges' (the feature nodes label a "
-                             "refined frame again from their state before it)")
+        if self.config.refine_passes and not self.lockstep:
+            raise InputError("parameter 'refine_passes' needs 'lockstep' (the feature nodes label a refined frame "
+                             "again from their state before it)")
         self.previous_stamp: int | None = None  # the last frame estimated (refine_passes)
         self.track_frames = 0  # frames in a row whose body was refinable (startup_refine_frames)
         self.refining: tuple[int, int] | None = None  # (frame, passes left after the one awaited) while refining
@@ -284,19 +286,23 @@ class SkeletonNode(Node):
         return blobs_in and (not self.edges or len(self.pending_edges.get(stamp, {})) == len(self.names))
 
     def _abandon_refinement(self, now: float) -> None:
-        """The refinement pass awaited has not got every camera's blobs within refine_timeout_s: the
-        previous pass stands (its body and prediction are published); refinement is switched off if no
-        camera answered at all (their nodes do not label a frame again)."""
+        """The refinement pass awaited has not got every camera's blobs (and, with edges, edge
+        statistics) within refine_timeout_s: the previous pass stands (its body and prediction are
+        published); refinement is switched off if no feature node answered at all (they do not label
+        or measure a frame again)."""
         asked, stamp = self.refine_fallback[0], self.refining[0]
-        answered = sorted(self.pending.pop(stamp, {}))
+        blobs = set(self.pending.pop(stamp, {}))
+        edges = set(self.pending_edges.pop(stamp, {}))
         self.first_seen.pop(stamp, None)
-        self.pending_edges.pop(stamp, None)
-        missing = sorted(set(self.names) - set(answered))
+        answered = bool(blobs or edges)
+        missing = [f"{what} from {', '.join(sorted(set(self.names) - got))}"
+                   for what, got in (("blobs", blobs), ("edge statistics", edges if self.edges else set(self.names)))
+                   if set(self.names) - got]
         what = "refinement off" if not answered else "this frame's refinement given up"
         self.get_logger().warning(
-            f"frame {stamp}: no refinement blobs from {', '.join(missing)} after {now - asked:.1f} s "
+            f"frame {stamp}: no refinement {'; no '.join(missing)} after {now - asked:.1f} s "
             f"(refine_timeout_s): the previous pass is published, {what}"
-            + ("; do the blob_features nodes run in lockstep with answer_refinements?" if not answered else ""))
+            + ("; do the feature nodes run in lockstep with answer_refinements?" if not answered else ""))
         if not answered:
             self.config.refine_passes = self.config.startup_refine_frames = 0
         self._previous_pass_stands(stamp)
