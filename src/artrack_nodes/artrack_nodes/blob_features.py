@@ -21,12 +21,13 @@ from rclpy.node import Node
 from artrack.body_model import load_body_model
 from artrack.errors import ArtrackError
 from artrack.messages import blob_array_msg, priors_from_msg
-from artrack.pipeline import BlobStage, load_pipeline_config, state_copy
+from artrack.pipeline import BlobStage, load_pipeline_config
 
 from .common import (
     IMAGE_QOS_RELIABLE,
     IMAGE_QOS_SENSOR,
     RESULT_QOS,
+    FrameBefore,
     FrameQueue,
     NodeDiagnostics,
     camera_topic,
@@ -79,7 +80,7 @@ class BlobFeaturesNode(Node):
         self.frames = 0
         # (a free-running node has moved past the frame a refinement asks for: it never answers)
         self.refine = bool(p["answer_refinements"]) and self.lockstep
-        self.before = None  # refine: (stamp, image, state before that frame) of the frame last processed
+        self.before = FrameBefore() if self.refine else None  # the frame last processed, its state before
         self.last_stamp: int | None = None  # the frame last processed
         self.told_no_refine = False  # a refinement's priors came without answer_refinements (logged once)
         self.refined = 0  # passes run again (diagnostics)
@@ -106,7 +107,7 @@ class BlobFeaturesNode(Node):
         except (ValueError, AttributeError) as exc:
             self.get_logger().error(f"dropped bad prior message on {camera_topic(self.camera, 'blob_priors')}: {exc}")
             return
-        if self.before is not None and stamp == self.before[0]:
+        if self.before is not None and stamp == self.before.stamp:
             self.refine_frame(priors)
             return
         if not self.refine and stamp == self.last_stamp:
@@ -123,19 +124,19 @@ class BlobFeaturesNode(Node):
         for stamp, image, found in self.queue.ready(lambda: self.frames == 0):
             prior_stamp, priors = found if found is not None else (None, None)
             self.last_stamp = stamp
-            if self.refine:
-                self.before = (stamp, image, state_copy(self.stage, self._shared))
+            if self.before is not None:
+                self.before.keep(stamp, image, self.stage, self._shared)
             if self._label(stamp, image, priors, prior_stamp):
                 self.frames += 1
 
     def refine_frame(self, priors) -> None:
         """The frame last processed, labelled again from the state before it with these priors
         (the body of its previous pass, projected); the blobs go out with the frame's stamp."""
-        stamp, image, state = self.before
+        stamp = self.before.stamp
         feedback = self.stage.feedback  # (as set now: a run-time parameter)
-        self.stage = state_copy(state, self._shared)  # (the state is kept for a further pass)
+        self.stage = self.before.again()
         self.stage.feedback = feedback
-        if self._label(stamp, image, priors, stamp, ", refinement"):
+        if self._label(stamp, self.before.image, priors, stamp, ", refinement"):
             self.refined += 1
 
     def _label(self, stamp: int, image, priors, prior_stamp: int | None, context: str = "") -> bool:

@@ -436,6 +436,32 @@ def received_ns(info: Any) -> int:
         return 0
 
 
+class FrameBefore:
+    """A lockstep feature node's answer to the skeleton's refinement (``ClosedLoopPipeline.step``):
+    the frame last processed, its image and a copy of the node's stage from before it, to process
+    that frame again from (blob_features labels it again, edge_features measures it again)."""
+
+    def __init__(self):
+        self.stamp: int | None = None  # the frame kept (None: none yet)
+        self.image = None
+        self._state = None
+        self._shared: list = []
+
+    def keep(self, stamp: int, image, stage, shared: list) -> None:
+        """Before processing frame ``stamp``: its image and a copy of ``stage`` (sharing ``shared``,
+        the objects a step never changes)."""
+        from artrack.pipeline import state_copy  # (here: the nodes without stages need not import it)
+
+        self.stamp, self.image, self._shared = stamp, image, shared
+        self._state = state_copy(stage, shared)
+
+    def again(self) -> Any:
+        """A fresh copy of the stage before the kept frame (the kept one stays for a further pass)."""
+        from artrack.pipeline import state_copy
+
+        return state_copy(self._state, self._shared)
+
+
 class FrameQueue:
     """Images waiting for the per-frame input that belongs to them (blob_features: the priors
     predicting the frame; edge_features: the predicted body of the frame).

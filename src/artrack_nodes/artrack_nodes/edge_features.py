@@ -28,7 +28,7 @@ from artrack.edge_fusion import EdgeStage
 from artrack.edge_tracker import EdgeTrackerConfig
 from artrack.errors import ArtrackError
 from artrack.messages import body_from_msg, edge_stats_msg
-from artrack.pipeline import link_poses, state_copy
+from artrack.pipeline import link_poses
 
 from .common import (
     IMAGE_QOS_RELIABLE,
@@ -37,6 +37,7 @@ from .common import (
     REFINEMENT_TOPIC,
     RESULT_QOS,
     CameraRigListener,
+    FrameBefore,
     FrameQueue,
     NodeDiagnostics,
     camera_topic,
@@ -84,7 +85,7 @@ class EdgeFeaturesNode(Node):
                                  RESULT_QOS)
         # (a free-running node has moved past the frame a refinement asks for: it never answers)
         self.refine = bool(p["answer_refinements"]) and self.lockstep
-        self.before = None  # refine: (stamp, image, state before that frame) of the frame last processed
+        self.before = FrameBefore() if self.refine else None  # the frame last processed, its state before
         self.refined = 0  # passes measured again (diagnostics)
         if self.refine:
             self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), REFINEMENT_TOPIC, self.on_refinement,
@@ -136,24 +137,19 @@ class EdgeFeaturesNode(Node):
         """The skeleton's body of a frame's previous pass: the frame last measured, measured again
         from the state before it about that body; the statistics go out with the frame's stamp."""
         ref = self._reference(msg, REFINEMENT_TOPIC)
-        if ref is None or self.before is None or ref[0] != self.before[0] or self.stage is None:
+        if ref is None or self.before is None or ref[0] != self.before.stamp or self.stage is None:
             return
-        stamp, image, state = self.before
-        self.stage = state_copy(state, self._shared())  # (the state is kept for a further pass)
-        if self._measure(stamp, image, ref[1], ref[2], stamp, ", refinement"):
+        self.stage = self.before.again()
+        if self._measure(ref[0], self.before.image, ref[1], ref[2], ref[0], ", refinement"):
             self.refined += 1
-
-    def _shared(self) -> list:
-        """What a step never changes (state_copy): the body model, the camera, the tunables."""
-        return [self.body, self.stage.camera, self.edge_config]
 
     def process_queue(self) -> None:
         if self.stage is None:  # the camera's calibration has not arrived yet
             return
         for stamp, image, found in self.queue.ready(lambda: self.frames == 0):
             ref_stamp, (reference, status) = found if found is not None else (0, (None, None))
-            if self.refine:
-                self.before = (stamp, image, state_copy(self.stage, self._shared()))
+            if self.before is not None:  # (what a step never changes: the body model, the camera, the tunables)
+                self.before.keep(stamp, image, self.stage, [self.body, self.stage.camera, self.edge_config])
             if self._measure(stamp, image, reference, status, ref_stamp):
                 self.frames += 1
 

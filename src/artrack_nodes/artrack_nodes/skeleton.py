@@ -295,9 +295,9 @@ class SkeletonNode(Node):
         edges = set(self.pending_edges.pop(stamp, {}))
         self.first_seen.pop(stamp, None)
         answered = bool(blobs or edges)
+        awaited = [("blobs", blobs)] + ([("edge statistics", edges)] if self.edges else [])
         missing = [f"{what} from {', '.join(sorted(set(self.names) - got))}"
-                   for what, got in (("blobs", blobs), ("edge statistics", edges if self.edges else set(self.names)))
-                   if set(self.names) - got]
+                   for what, got in awaited if set(self.names) - got]
         what = "refinement off" if not answered else "this frame's refinement given up"
         self.get_logger().warning(
             f"frame {stamp}: no refinement {'; no '.join(missing)} after {now - asked:.1f} s "
