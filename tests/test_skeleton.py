@@ -27,6 +27,7 @@ from artrack.skeleton import (
     SkeletonConfig,
     UprightSegment,
     _exchange_sides,
+    _mirror_label,
     blob_size_m,
     facing_agreement,
     facing_direction,
@@ -725,6 +726,10 @@ def test_config_file_and_errors(body, cameras):
         load_skeleton_config({"tracking": {"facing_flip_cosine": -2.0}})
     with pytest.raises(InputError, match="facing_label"):
         make_estimator("baseline", body, cameras, {"tracking": {"facing_label": "tail"}})
+    with pytest.raises(InputError, match="tracking.facing_turn_groups' must be a list of lists"):
+        load_skeleton_config({"tracking": {"facing_turn_groups": ["hand"]}})
+    with pytest.raises(InputError, match="tracking.facing_turn_groups' names part 'tail'"):
+        make_estimator("baseline", body, cameras, {"tracking": {"facing_turn_groups": [["hand"], ["tail"]]}})
     est = make_estimator("baseline", body, cameras, None)
     with pytest.raises(InputError, match="unknown camera 'cam9'"):
         est.update(0, {"cam9": []})
@@ -1605,6 +1610,49 @@ def test_a_body_tracked_facing_backwards_is_turned_round(body, cameras):
             assert np.linalg.norm(e.joints - truth, axis=1).mean() < 0.03
         else:
             assert not est.facing_flips and heading_error(e) > 150
+
+
+def test_the_face_turn_keeps_hand_labels_that_fit_as_they_are(body, cameras):
+    """tracking.facing_turn_groups: a heading that drifted round while the hands' own labels stayed
+    right (distractor seed 21, stop 64: the trunk turned ~135 deg during the legs' swap, the hands
+    10-40 mm off) is turned round by the face check; exchanging every label there put both hands
+    0.5-0.6 m off, on the other's side. With [[hand]] the turn keeps the hands' labels where the
+    left hand already lies left of the right one at the heading turned to: here, so the wrists are
+    right. With [] (every label exchanged) the right hand's blob becomes the left hand. (A body
+    facing backwards with every label swapped, the usual case, is exchanged as before: the test
+    above.)"""
+    theta = _test_pose(body)
+    truth = body.joint_positions(theta)
+    wrists = [body.joint_names.index("l_wrist"), body.joint_names.index("r_wrist")]
+
+    def relabel(blobs, parts):
+        return {c: [Blob2D(_mirror_label(b.label) if b.label[2:] in parts else b.label, b.mean, b.cov,
+                           pixel_count=b.pixel_count) for b in bl] for c, bl in blobs.items()}
+
+    right = _head_sized(body, cameras, blobs_2d(body, cameras, theta), theta)
+    sided = {lab[2:] for lab in body.blob_labels if lab[:2] in ("l_", "r_")}
+    swapped = relabel(right, sided)  # a body facing backwards, every side swapped to match
+    hands_right = relabel(right, sided - {"hand"})  # the hands' labels right, the rest swapped
+    for groups in ([["hand"]], []):
+        est = make_estimator("baseline", body, cameras, {"fit": {"upright_head_sigma_m": 0.0}, "tracking": {
+            "verify_frames": 0, "facing_turn_groups": groups}})
+        e = est.update(stamp(0), swapped)
+        k = 1
+        while not est.facing_flips and k < 20:
+            e = est.update(stamp(k), hands_right)
+            k += 1
+        assert len(est.facing_flips) == 1, groups
+        # at the turn: the right hand's blob (the left one is out of the backwards body's reach: the
+        # reach gate dropped it) taken as the right hand, or, exchanged, as the left
+        wrist_err = np.linalg.norm(e.joints[wrists] - truth[wrists], axis=1)
+        if groups:
+            assert wrist_err[1] < 0.01, wrist_err
+            assert "r_hand" in est.last_observed and "l_hand" not in est.last_observed
+            e = est.update(stamp(k), hands_right)  # in reach now: both hands follow their labels
+            assert np.linalg.norm(e.joints[wrists] - truth[wrists], axis=1).max() < 0.05
+        else:
+            assert wrist_err.min() > 0.2, wrist_err
+            assert "l_hand" in est.last_observed and "r_hand" not in est.last_observed
 
 
 def _skin_blobs_at(cameras, points):

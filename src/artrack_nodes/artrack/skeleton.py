@@ -143,7 +143,9 @@ While tracking, from the first frame on (alongside that verification), the face
 check (``tracking.facing_*``, :func:`facing_agreement`) turns a body that faces
 backwards, with every left/right label swapped to match, round: the head's skin
 blob is the face in the views it looks at and only the neck behind it, so its
-sizes tell the facing that the blob positions cannot.
+sizes tell the facing that the blob positions cannot. A heading can also drift round while
+the hands' own labels stay right; at the turn the hands (``tracking.facing_turn_groups``)
+keep their labels where the left one lies left of the right one at the new heading.
 A hand lost by its 2-D labels (one that moved faster than its prediction, so the
 gates around the prior found nothing) is re-acquired (``tracking.reacquire_*``,
 :meth:`_Estimator._reacquire`) where the views' unlabelled skin blobs meet within
@@ -332,6 +334,11 @@ class TrackingConfig:
     #: the blob whose size shows the facing: the head's skin is the face from the front, the neck
     #: from behind (the hair covers the rest)
     facing_label: str = "head"
+    #: parts (no side prefix) whose left/right exchange at the face check's turn is decided by their
+    #: sides: a group is kept as labelled where its left parts lie left of its right ones at the heading
+    #: turned to (a heading that drifted round while the group's own labels stayed right), exchanged
+    #: otherwise; other sided parts are always exchanged; [] = every label exchanged
+    facing_turn_groups: list = field(default_factory=lambda: [["hand"]])
     #: parts re-acquired when lost (:meth:`_Estimator._reacquire`): a part of these without a 3-D blob
     #: seen in two or more views takes the point where the views' unlabelled skin blobs meet ...
     reacquire_labels: list = field(default_factory=lambda: ["l_hand", "r_hand"])
@@ -621,10 +628,11 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
                          "abandon screens that pass")
     if not 1e-12 <= out.fit.tolerance < 1.0:
         raise InputError(f"skeleton config: field 'fit.tolerance' must be in [1e-12, 1) (got {out.fit.tolerance!r})")
-    groups = out.fit.mirror_groups
-    if not all(isinstance(g, (list, tuple)) and g and all(isinstance(p, str) and p for p in g) for g in groups):
-        raise InputError("skeleton config: field 'fit.mirror_groups' must be a list of lists of part names "
-                         "(without the side prefix, e.g. [[thigh, shin], [shin]])")
+    for name, groups in (("fit.mirror_groups", out.fit.mirror_groups),
+                         ("tracking.facing_turn_groups", out.tracking.facing_turn_groups)):
+        if not all(isinstance(g, (list, tuple)) and g and all(isinstance(p, str) and p for p in g) for g in groups):
+            raise InputError(f"skeleton config: field '{name}' must be a list of lists of part names "
+                             "(without the side prefix, e.g. [[thigh, shin], [shin]])")
     if not all(isinstance(p, str) and p for p in out.measurement.view_association):
         raise InputError("skeleton config: field 'measurement.view_association' must be a list of part names "
                          "(without the side prefix, e.g. [thigh, shin])")
@@ -1460,6 +1468,8 @@ class _Estimator:
         self._reach = self._arm_reach()
         sided = {lab[2:] for lab in body.blob_labels if lab[:2] == "l_" and "r_" + lab[2:] in body.blob_labels}
         for name, parts in (("fit.mirror_groups", {p for g in f.mirror_groups for p in g}),
+                            ("tracking.facing_turn_groups", {p for g in self.cfg.tracking.facing_turn_groups
+                                                             for p in g}),
                             ("measurement.view_association", set(self.cfg.measurement.view_association)),
                             ("fit.overlap_parts", set(f.overlap_parts))):
             unknown = sorted(parts - sided)
@@ -1936,11 +1946,13 @@ class _Estimator:
         self._facing: list[float] = []  # the face check's cosines, newest last (a new track starts afresh)
         self._facing_ways: list[np.ndarray] = []  # ... and the facing directions they came from
 
-    def _mirrored(self, obs: Mapping[str, Blob3D]) -> dict[str, Blob3D]:
-        """The blobs with their left and right labels exchanged (l_ <-> r_; others kept)."""
+    def _mirrored(self, obs: Mapping[str, Blob3D], keep: Iterable[str] = ()) -> dict[str, Blob3D]:
+        """The blobs with their left and right labels exchanged (l_ <-> r_; others kept, and those of
+        the parts in ``keep``, named without the side prefix)."""
+        keep = set(keep)
         out = {}
         for lab, blob in obs.items():
-            m = _mirror_label(lab)
+            m = lab if lab[2:] in keep else _mirror_label(lab)
             if m in self.labels:
                 out[m] = dataclasses.replace(blob, label=m)
         return out
@@ -1951,7 +1963,8 @@ class _Estimator:
         cosines is below ``tracking.facing_flip_cosine`` (or that of the last
         ``tracking.facing_quick_frames`` below ``tracking.facing_quick_cosine``), the body faces backwards with its
         left/right labels swapped to match; it is turned round as in the verification (the rest
-        pose fitted to the blobs with their labels exchanged), to the heading the sizes point to
+        pose fitted to the blobs with their labels exchanged; those of a ``tracking.facing_turn_groups``
+        group kept where its left parts already lie left of its right ones), to the heading the sizes point to
         (the mean of those frames' :func:`facing_direction`; heading + π if they cancel). A
         heading off sideways (cosine near 0) is left to the fit: turning it round would not help."""
         t = self.cfg.tracking
@@ -1970,10 +1983,26 @@ class _Estimator:
             ways = self._facing_ways[-t.facing_quick_frames:]
         else:
             return
-        mirrored = self._mirrored(obs)
         way = np.mean(ways, axis=0)
         yaw = (math.atan2(way[1], way[0]) if np.linalg.norm(way) > 0.1
                else _heading(exp_so3(self.theta[3:6])) + math.pi)
+        # Each turn group's labels are kept where, as labelled, its left parts lie left of its right
+        # ones at the heading turned to (a lone part: left of the root on its own side), as the
+        # start-up orders its hands; exchanged otherwise, as every other sided label is.
+        left = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+        keep = set()
+        for group in t.facing_turn_groups:
+            vote = 0.0
+            for part in group:
+                lb, rb = obs.get("l_" + part), obs.get("r_" + part)
+                if lb is not None and rb is not None:
+                    vote += float((lb.mean - rb.mean) @ left)
+                elif lb is not None or rb is not None:
+                    sign, blob = (1.0, lb) if lb is not None else (-1.0, rb)
+                    vote += sign * float((blob.mean - self.theta[0:3]) @ left)
+            if vote > 0.0:
+                keep |= set(group)
+        mirrored = self._mirrored(obs, keep)
         theta_f, _ = self._init_fit(self._blob_targets(mirrored), self._rest_at(self.theta[0:3], yaw))
         self._initialise(stamp_ns, theta_f, mirrored)
         self.last_observed = mirrored
