@@ -1612,7 +1612,7 @@ def test_a_body_tracked_facing_backwards_is_turned_round(body, cameras):
             assert not est.facing_flips and heading_error(e) > 150
 
 
-def test_the_face_turn_keeps_hand_labels_that_fit_as_they_are(body, cameras):
+def test_the_face_turn_keeps_hand_labels_already_on_their_sides(body, cameras):
     """tracking.facing_turn_groups: a heading that drifted round while the hands' own labels stayed
     right (distractor seed 21, stop 64: the trunk turned ~135 deg during the legs' swap, the hands
     10-40 mm off) is turned round by the face check; exchanging every label there put both hands

@@ -1987,7 +1987,7 @@ class _Estimator:
         yaw = (math.atan2(way[1], way[0]) if np.linalg.norm(way) > 0.1
                else _heading(exp_so3(self.theta[3:6])) + math.pi)
         # Each turn group's labels are kept where, as labelled, its left parts lie left of its right
-        # ones at the heading turned to (a lone part: left of the root on its own side), as the
+        # ones at the heading turned to (a lone part: on its own side of the root), as the
         # start-up orders its hands; exchanged otherwise, as every other sided label is.
         left = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
         keep = set()
