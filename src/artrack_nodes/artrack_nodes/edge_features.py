@@ -122,7 +122,7 @@ class EdgeFeaturesNode(Node):
             if poses is not None and len(poses) != len(self.body.links):
                 raise ValueError(f"field 'links' has {len(poses)} links, the body model {len(self.body.links)}")
         except (ValueError, AttributeError) as exc:
-            self.get_logger().error(f"dropped bad prediction on {topic}: {exc}")
+            self.get_logger().error(f"dropped bad TrackedBody on {topic}: {exc}")
             return None
         return body.stamp_ns, poses, body.status
 

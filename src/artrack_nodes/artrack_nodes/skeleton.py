@@ -83,8 +83,8 @@ PARAMS = [
                                   "free-running nodes cannot go back: off there"),
     ("startup_refine_passes", 2, "extra passes of those frames"),
     ("refine_timeout_s", 10.0, "a refinement pass whose blobs (or edge statistics) have not all come after this "
-                               "long is abandoned (the "
-                               "previous pass is published; no camera answering switches refinement off), s"),
+                               "long is abandoned (the previous pass is published; no camera answering switches "
+                               "refinement off), s"),
 ]
 #: re-seed bodies: reliable, volatile (a restarted skeleton must not re-seed from stale bodies)
 RESEED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
