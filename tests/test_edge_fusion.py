@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from artrack.body_fit import LinkGoals, fit_pose
 from artrack.body_model import load_body_model
 from artrack.edge_fusion import EdgeStage, LinkEdgeStatistics, combine
 from artrack.edge_tracker import EdgeTrackerConfig
@@ -12,7 +13,6 @@ from artrack.errors import InputError
 from artrack.lie import exp_se3, inverse_se3, log_se3
 from artrack.motion import pose_at
 from artrack.pipeline import ClosedLoopPipeline, load_pipeline_config
-from artrack.skeleton import LinkGoals, fit_pose
 from artrack.synth import Renderer, default_rig
 from artrack.types import STATUS_LOST, STATUS_TRACKING
 

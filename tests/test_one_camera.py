@@ -9,23 +9,14 @@ import pytest
 import yaml
 from test_skeleton import blobs_2d, stamp, startup_blobs
 
+from artrack.body_fit import BodyTerms, GroundContact, PointTarget, UprightSegment, fit_pose
 from artrack.body_model import load_body_model
 from artrack.cameras import Camera
 from artrack.config import config_dir
 from artrack.errors import InputError
-from artrack.skeleton import (
-    BodyKinematics,
-    BodyTerms,
-    GroundContact,
-    PointTarget,
-    SkeletonConfig,
-    UprightSegment,
-    fit_pose,
-    load_skeleton_config,
-    make_estimator,
-    one_view_start_points,
-    ray_information,
-)
+from artrack.skeleton import BodyKinematics, make_estimator
+from artrack.skeleton_config import SkeletonConfig, load_skeleton_config
+from artrack.startup import one_view_start_points, ray_information
 from artrack.types import STATUS_INITIALIZING, STATUS_TRACKING, Blob2D, Blob3D
 
 

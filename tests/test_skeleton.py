@@ -11,6 +11,15 @@ import numpy as np
 import pytest
 import yaml
 
+from artrack.body_fit import (
+    GroundContact,
+    LinkGoals,
+    PointTarget,
+    UprightSegment,
+    exchange_sides,
+    fit_pose,
+    mirror_label,
+)
 from artrack.body_model import load_body_model
 from artrack.cameras import Camera
 from artrack.config import config_dir
@@ -19,23 +28,9 @@ from artrack.errors import InputError
 from artrack.lie import exp_se3, inverse_se3
 from artrack.motion import pose_at
 from artrack.projection import visible_points
-from artrack.skeleton import (
-    BodyKinematics,
-    GroundContact,
-    LinkGoals,
-    PointTarget,
-    SkeletonConfig,
-    UprightSegment,
-    _exchange_sides,
-    _mirror_label,
-    blob_size_m,
-    facing_agreement,
-    facing_direction,
-    fit_pose,
-    load_skeleton_config,
-    make_estimator,
-    match_skin_blobs,
-)
+from artrack.skeleton import BodyKinematics, make_estimator
+from artrack.skeleton_config import SkeletonConfig, load_skeleton_config
+from artrack.startup import blob_size_m, facing_agreement, facing_direction, match_skin_blobs
 from artrack.triangulation import associate_views, triangulate_blobs
 from artrack.types import STATUS_INITIALIZING, STATUS_LOST, STATUS_TRACKING, Blob2D, Blob3D
 
@@ -337,7 +332,7 @@ def test_nearest_person_groups_skin_points_by_horizontal_gaps():
     """Single linkage at person_gap_m: a face and two hands 0.4 m apart are one person, a face and
     a hand 4 m away another; the fuller group wins over a lone point nearer start_xy, and of equal
     groups the one whose highest point is nearer start_xy."""
-    from artrack.skeleton import nearest_person
+    from artrack.startup import nearest_person
 
     def pt(x, y, z):
         return (np.array([x, y, z], float), 0.0, ("cam01", "cam02"), None)
@@ -1106,7 +1101,7 @@ def test_analytic_and_numeric_jacobians_give_the_same_fit(body):
 def test_whitener_of_a_stack_equals_one_per_matrix_bit_for_bit():
     """fit_pose whitens its targets in one batched eigh; each U must be the single matrix's, and
     C-contiguous (a strided U changes einsum's summation order, and so the fits' last bits)."""
-    from artrack.skeleton import _whitener
+    from artrack.body_fit import _whitener
 
     rng = np.random.default_rng(4)
     X = rng.normal(size=(40, 3, 3))
@@ -1202,7 +1197,7 @@ def test_exchange_sides_mirrors_the_legs_across_the_sagittal_plane(body):
         lo = np.maximum(lk.lower, np.where(sign > 0, other.lower, -other.upper))  # within both sides' limits
         hi = np.minimum(lk.upper, np.where(sign > 0, other.upper, -other.lower))
         theta[lk.dof_slice] = rng.uniform(lo, hi)
-    out = _exchange_sides(body, theta, {"l_thigh", "r_thigh", "l_shin", "r_shin"})
+    out = exchange_sides(body, theta, {"l_thigh", "r_thigh", "l_shin", "r_shin"})
     J = {n: i for i, n in enumerate(body.joint_names)}
     before, after = body.joint_positions(theta), body.joint_positions(out)
     flip = np.array([1.0, -1.0, 1.0])
@@ -1211,7 +1206,7 @@ def test_exchange_sides_mirrors_the_legs_across_the_sagittal_plane(body):
         np.testing.assert_allclose(after[J[b]], flip * before[J[a]], atol=1e-9)
     others = [J[n] for n in J if n not in ("l_knee", "r_knee", "l_ankle", "r_ankle")]
     np.testing.assert_allclose(after[others], before[others], atol=1e-12)
-    np.testing.assert_allclose(_exchange_sides(body, out, {"l_thigh", "r_thigh", "l_shin", "r_shin"}), theta,
+    np.testing.assert_allclose(exchange_sides(body, out, {"l_thigh", "r_thigh", "l_shin", "r_shin"}), theta,
                                atol=1e-12)
 
 
@@ -1626,7 +1621,7 @@ def test_the_face_turn_keeps_hand_labels_already_on_their_sides(body, cameras):
     wrists = [body.joint_names.index("l_wrist"), body.joint_names.index("r_wrist")]
 
     def relabel(blobs, parts):
-        return {c: [Blob2D(_mirror_label(b.label) if b.label[2:] in parts else b.label, b.mean, b.cov,
+        return {c: [Blob2D(mirror_label(b.label) if b.label[2:] in parts else b.label, b.mean, b.cov,
                            pixel_count=b.pixel_count) for b in bl] for c, bl in blobs.items()}
 
     right = _head_sized(body, cameras, blobs_2d(body, cameras, theta), theta)

@@ -22,7 +22,7 @@ skeleton is (re-)initialised (:meth:`EdgeStage.step` with ``status``; :meth:`Edg
 
 Cameras combine by summing (all share ``xi`` per link, §2); the skeleton then uses
 ``(xi_i - xi_hat_i)ᵀ C_i (xi_i - xi_hat_i) / sigma²`` as a soft constraint on each link
-(:func:`artrack.skeleton.fit_pose`, ``link_goals``). No damping prior is included here:
+(:func:`artrack.body_fit.fit_pose`, ``link_goals``). No damping prior is included here:
 links and directions the edges do not see carry zero information and are left to the blobs
 and the body model.
 """

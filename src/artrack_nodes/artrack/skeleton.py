@@ -5,6 +5,10 @@
     update(stamp_ns, blobs_by_camera) -> BodyEstimate   # estimate at stamp_ns
     predict(stamp_ns) -> BodyEstimate                   # prediction for a later frame
 
+The parts they share live beside this module: the tunables in ``skeleton_config``, the
+bounded least-squares body fit in ``body_fit``, the start-up's skin matching and the facing
+cues in ``startup``. What each rule does is described here, where the estimators apply it.
+
 Kinds
 -----
 ``'baseline'`` — the "raw feature tracker" of the paper's Table 1, an honest
@@ -178,21 +182,26 @@ Units: metres, radians, seconds (stamps in integer ns); world frame z up.
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 import time
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.linalg import null_space
-from scipy.optimize import least_squares
 
+from .body_fit import (
+    BodyTerms,
+    GroundContact,
+    LinkGoals,
+    PointTarget,
+    UprightSegment,
+    exchange_sides,
+    fit_pose,
+    mirror_label,
+)
 from .body_model import BodyModel, limb_joint_indices
 from .cameras import Camera
-from .config import require_bool
 from .constraints import (
     BallJoints,
     ConstraintSolver,
@@ -210,15 +219,25 @@ from .constraints import (
 from .errors import InputError
 from .hidden import hide
 from .kalman import ConstantAccelerationKF
-from .lie import inverse_se3, log_se3, skew
+from .lie import skew
 from .projection import Capsule, off_image_margin_px, visible_points
+from .skeleton_config import FOREGROUND, KINDS, SKIN, SkeletonConfig, load_skeleton_config
+from .startup import (
+    facing_direction,
+    forward_xy,
+    match_skin_blobs,
+    nearest_in_gate,
+    nearest_person,
+    one_view_start_points,
+    ray_information,
+    root_heading,
+    same_blobs,
+)
 from .triangulation import (
     associate_views,
     blob_extent,
     drop_overlapping_pairs,
     drop_slivers,
-    midpoint,
-    triangulate_blob,
     triangulate_blobs,
 )
 from .types import (
@@ -236,460 +255,15 @@ __all__ = [
     "BaselineEstimator",
     "BodyKinematics",
     "DynamicEstimator",
-    "GroundContact",
     "KinematicEstimator",
-    "SkeletonConfig",
-    "fit_pose",
-    "load_skeleton_config",
     "make_estimator",
-    "blob_size_m",
-    "match_skin_blobs",
 ]
 
-FOREGROUND = "foreground"
-SKIN = "skin"
-KINDS = ("baseline", "kinematic", "dynamic")
 #: half length (m) of the lever along the axis link's lateral axis on which the horizontal-axis
 #: cue acts (the cue's sigma in m is this times ``fit.axis_sigma_rad``)
 _AXIS_LEVER_M = 0.15
 #: floor (m, 1 sigma) of the narrower horizontal extent in the ``fit.axis_min_ratio`` test
 _AXIS_FLOOR_M = 0.03
-
-
-# =========================================================================== configuration
-@dataclass
-class MeasurementConfig:
-    """How 3-D blobs become measurements (see config/skeleton.yaml)."""
-
-    cov_scale: float = 0.05
-    floor_m: float = 0.005
-    gate_chi2: float = 16.27
-    blob_cov: str = "shape+state"
-    view_association: list = field(default_factory=lambda: ["thigh", "shin"])
-    view_association_margin_chi2: float = 4.0
-    #: a 3-D blob of three or more views whose weighted reprojection error is above this is solved again
-    #: without the view that disagrees (:func:`artrack.triangulation._drop_outlier_views`; 0 = off) ...
-    view_outlier_chi2: float = 4.0
-    #: ... once a track is this many frames old (:meth:`_Estimator._view_outlier_threshold`; 0 = always)
-    view_outlier_after_frames: int = 40
-    #: a view's blob of n pixels counts n / (n + n₀) in the triangulation, n₀ = this × the image
-    #: area (:func:`artrack.triangulation.triangulate_blobs`; 0 = by its extent alone)
-    small_blob_fraction: float = 3.90625e-4
-    #: a view's 2-D blob of ``min_view_labels`` with fewer pixels than this × the camera's image area (a
-    #: sliver) is left out of the triangulation where two or more views see the part with more pixels
-    #: (0 = off; :meth:`_Estimator._drop_small_views`)
-    min_view_fraction: float = 1.953125e-4
-    #: the blob labels ``min_view_fraction`` applies to
-    min_view_labels: list = field(default_factory=lambda: ["head", "l_hand", "r_hand"])
-    #: the views that see a part whole drop its slivers only if two of their rays meet at least this
-    #: far (degrees) from parallel and from anti-parallel (:func:`artrack.triangulation.drop_slivers`; 0: any two)
-    min_view_ray_angle_deg: float = 45.0
-    #: a 3-D blob seen by one view only takes its depth along that view's ray from the prior it was
-    #: triangulated with (the prediction); the body fits count it across the ray only, and this sigma
-    #: (m) along it (:meth:`_Estimator._blob_targets`); 0 = as triangulated (the prediction's depth)
-    one_view_depth_sigma_m: float = 0.0
-    #: negative evidence (:mod:`artrack.hidden`): a part of these labels found by one view only takes
-    #: its prior's depth along that ray where the views that looked for it and did not find it would
-    #: not have seen it (:meth:`_Estimator._hidden_priors`; [] = off)
-    hidden_labels: list = field(default_factory=lambda: ["l_hand", "r_hand"])
-    #: ... searched over the prediction's ± this many standard deviations
-    hidden_sigmas: float = 3.0
-    #: ... the probability that a view's tracker misses a part in its sight: the price of each view that
-    #: would have seen a point (:func:`artrack.hidden.hide`; 0.01: one view fewer beats any 3-sigma move)
-    hidden_miss_probability: float = 0.01
-    #: ... a point nearer the image border than this (px) counts as not seen by that view
-    hidden_inset_px: float = 0.0
-    #: a part of ``hidden_labels`` that no view found is measured, to this sigma (m), at the likeliest
-    #: point given that the views which looked did not find it (:meth:`_Estimator._hidden_observations`;
-    #: 0 = off; only beside ``tracking.min_blobs`` real 3-D blobs, and never counted as seen)
-    hidden_no_view_sigma_m: float = 0.1
-
-
-@dataclass
-class TrackingConfig:
-    """Status logic."""
-
-    min_blobs: int = 3
-    lost_after_frames: int = 15
-    #: a LOST estimator re-initialises from its own blobs (False: only ``reseed`` restarts it, e.g. from
-    #: the loose_limbed node; the first start still uses the blobs)
-    relocalise_from_blobs: bool = True
-    #: a re-seed (:meth:`_Estimator.reseed`) from another estimator's body holds its elbows, wrists,
-    #: knees and ankles only this loosely, m (its trunk and head at the re-seed's sigma): the
-    #: loose-limbed body's limbs are its weakest part, and the rest pose and the blobs do better
-    reseed_limb_sigma_m: float = 1.0
-    verify_frames: int = 20
-    flip_cost_ratio: float = 0.5
-    #: the face check (:func:`facing_agreement`): over this many frames while tracking (0 = off) ...
-    facing_check_frames: int = 15
-    #: ... a mean cosine below this between the estimated facing and the way the ``facing_label``
-    #: blob's sizes point turns the body round (heading + π, left <-> right)
-    facing_flip_cosine: float = -0.7
-    #: ... or, sooner, a mean below ``facing_quick_cosine`` over the last this many frames (0 = only the
-    #: full window): a body started facing backwards is turned after a few frames, not fifteen
-    facing_quick_frames: int = 5
-    facing_quick_cosine: float = -0.85
-    #: ... counted only in frames whose largest size is at least this many times the smallest
-    facing_min_size_ratio: float = 2.0
-    #: the blob whose size shows the facing: the head's skin is the face from the front, the neck
-    #: from behind (the hair covers the rest)
-    facing_label: str = "head"
-    #: parts (no side prefix) whose left/right exchange at the face check's turn is decided by their
-    #: sides: a group is kept as labelled where its left parts lie left of its right ones at the heading
-    #: turned to (a heading that drifted round while the group's own labels stayed right), exchanged
-    #: otherwise; other sided parts are always exchanged; [] = every label exchanged
-    facing_turn_groups: list = field(default_factory=lambda: [["hand"]])
-    #: parts re-acquired when lost (:meth:`_Estimator._reacquire`): a part of these without a 3-D blob
-    #: seen in two or more views takes the point where the views' unlabelled skin blobs meet ...
-    reacquire_labels: list = field(default_factory=lambda: ["l_hand", "r_hand"])
-    #: ... if that point lies farther than this from every other observed 3-D blob, m ...
-    reacquire_separation_m: float = 0.15
-    #: ... and within this many times the part's reach (the bone chain from its shoulder) of its shoulder
-    reacquire_reach_margin: float = 1.1
-    #: a re-acquired part's own dofs are fitted from the arm as it is and also with its hinges half
-    #: bent (:meth:`BaselineEstimator._reach_for`); False: from the arm as it is only
-    reacquire_bent_start: bool = True
-    #: a 3-D blob of ``reacquire_labels`` triangulated (two or more views) farther than this many times the part's reach
-    #: from its shoulder in the current pose is not used (the hand's label sits on something else:
-    #: another person's face), and the part may be re-acquired; 0 = never
-    reach_gate_margin: float = 1.3
-    #: further parts gated so (not re-acquired), their reach measured from the joint above their blob-carrying
-    #: parent (a shin from its hip, through the thigh, whose same-coloured label may be as wrong as its own) ...
-    reach_gate_labels: list = field(default_factory=lambda: ["l_shin", "r_shin"])
-    #: ... from this many frames after a track starts (the start-up pose's legs are the rest pose's)
-    reach_gate_after_frames: int = 10
-
-
-def _default_rest_sigmas() -> dict[str, float]:
-    return {"torso": 0.3, "head": 0.5, "l_hand": 0.6, "r_hand": 0.6, "l_foot": 0.3, "r_foot": 0.3}
-
-
-@dataclass
-class PriorConfig:
-    """Rest-pose prior on the joint dofs, shared by all estimators."""
-
-    rest_sigma_rad: float = 1.0
-    rest_sigma_by_link: dict = field(default_factory=_default_rest_sigmas)
-
-
-@dataclass
-class FitConfig:
-    """Bounded least-squares pose fit (baseline, initialisation)."""
-
-    previous_sigma_rad: float = 2.0
-    max_nfev: int = 40
-    tolerance: float = 1e-3
-    predict_velocity_sigma: float = 1.0
-    #: the baseline's prediction extrapolates the joint dofs and the root's position by this times
-    #: dt times their smoothed velocity (0: zero velocity, the pose at t)
-    predict_velocity_gain: float = 0.5
-    #: exponential-smoothing weight of the newest frame difference in that velocity
-    predict_velocity_smoothing: float = 0.5
-    #: links whose dofs are extrapolated ([] = all joints and the root's position)
-    predict_velocity_links: list = field(default_factory=list)
-    robust_scale: float = 3.0
-    edge_sigma_px: float = 1.0
-    edge_min_found: int = 8
-    ground_sigma_m: float = 0.0
-    #: soft upright trunk (:class:`UprightSegment`): sigma of the thorax' horizontal offset from the pelvis, m; 0 = off
-    upright_sigma_m: float = 0.0
-    #: soft upright head (:meth:`UprightSegment.link_axis`): sigma of the head joint's horizontal offset
-    #: from the neck pivot (the head link's origin), beyond the rest pose's, m; 0 = off
-    upright_head_sigma_m: float = 0.03
-    floor_z_m: float = 0.0
-    axis_label: str = "torso"
-    axis_sigma_rad: float = 0.35
-    axis_min_ratio: float = 1.3
-    mirror_groups: list = field(default_factory=lambda: [["thigh", "shin"], ["shin"]])
-    mirror_screen_ratio: float = 1.5
-    #: the screen itself runs only when the cost of its start (the labelled fit's legs exchanged, no
-    #: fit) is below this times the labelled fit's cost (a large value: always)
-    mirror_prescreen_ratio: float = 10.0
-    #: the screen is abandoned when after ``mirror_screen_abandon_after`` iterations its cost is
-    #: still above ``mirror_screen_abandon_ratio`` times the labelled fit's (0 iterations: never)
-    mirror_screen_abandon_after: int = 6
-    mirror_screen_abandon_ratio: float = 3.0
-    #: l_/r_ parts left out of a view's triangulation where their two 2-D blobs overlap there
-    #: (squared Mahalanobis distance between the means under the summed covariances below
-    #: ``overlap_chi2``; :func:`artrack.triangulation.drop_overlapping_pairs`); [] = off
-    overlap_parts: list = field(default_factory=lambda: ["thigh", "shin"])
-    overlap_chi2: float = 4.0
-
-
-@dataclass
-class KinematicConfig:
-    """Kalman filters + kinematic constraint solver."""
-
-    blob_jerk: float = 200.0
-    link_jerk: float = 200.0
-    init_position_sigma_m: float = 0.1
-    init_velocity_sigma: float = 0.5
-    init_acceleration_sigma: float = 3.0
-    writeback_sigma_m: float = 0.01
-    alpha: float = 1.0
-    link_goal_weight: float = 0.02
-    rest_weight: float = 4.0
-    previous_sigma_rad: float = 0.08
-    limit_sigma_rad: float = 0.02
-    gravity_weight: float = 2.0
-    coast_velocity_decay: float = 0.8
-    coast_acceleration_decay: float = 0.3
-    max_iterations: int = 8
-    predict_iterations: int = 3
-    angular_velocity_smoothing: float = 0.5
-    robust_scale: float = 3.0
-    outlier_fit_scale: float = 1.5
-    orientation_from_fit: bool = True
-    fit_source: str = "baseline"
-    warmup_frames: int = 40
-    follow_raw_track: bool = True
-
-
-@dataclass
-class DynamicConfig:
-    """Full dynamics (masses, springs, damping)."""
-
-    substeps: int = 4
-    spring_scale: float = 1.0
-    spring_stiffness_max: float = 20000.0
-    linear_damping: float = 2.0
-    angular_damping: float = 8.0
-    rest_stiffness: float = 0.5
-    limit_stiffness: float = 50.0
-    gravity_weight: float = 2.0
-    predict_velocity_sigma: float = 0.5
-    outlier_fit_scale: float = 0.0
-    #: stiffness-proportional (Rayleigh) damping of the springs, s (0 = none; ConstraintSolver.step_dynamic)
-    stiffness_damping_s: float = 0.01
-    #: with kinematic.fit_source 'baseline': the observation springs pull toward the raw tracker's
-    #: robust body fit of the frame (its blob centres, one consistent body) instead of the triangulated
-    #: blobs, and the raw tracker owns the track's life cycle, as for the kinematic estimator
-    follow_fit: bool = True
-    #: torsional springs toward the raw tracker's link orientations (with follow_fit), N m/rad (0 = none)
-    fit_orientation_stiffness: float = 150.0
-
-
-@dataclass
-class StartupConfig:
-    """Initialisation from the start-up classes ``foreground`` and ``skin``."""
-
-    face_offset_m: float = 0.06
-    min_facing_offset_m: float = 0.02
-    min_hand_separation_m: float = 0.15
-    match_gate_sigma: float = 3.0
-    match_gate_px: float = 4.0
-    missing_view_penalty_px: float = 10.0
-    max_skin_blobs_per_camera: int = 5
-    skin_sigma_m: float = 0.03
-    face_sigma_z_m: float = 0.08
-    standing_height_sigma_m: float = 0.08
-    centroid_sigma_xy_m: float = 0.10
-    centroid_sigma_z_m: float = 0.30
-    facing_weight: float = 20.0
-    reach_margin: float = 1.15
-    start_xy: tuple = (0.0, 0.0)
-    start_radius_m: float = 0.0
-    heading_sigma_rad: float = 0.35
-    min_hand_views: int = 3
-    #: a start-up skin blob larger than this (m, the side of its area's square at the matched point's
-    #: depth, :func:`blob_size_m`) sees the point but does not locate it (:func:`match_skin_blobs`); 0 = off
-    max_skin_size_m: float = 0.32
-    #: a start-up skin point whose extension to a further view took a blob that a better point other
-    #: than the face, at least ``min_hand_separation_m`` away horizontally, already took (two hands
-    #: merged there) is kept, that view seeing it without locating it (:func:`match_skin_blobs`
-    #: ``share_taken_views``); False = such a point is dropped
-    share_taken_views: bool = True
-    #: skin points farther apart than this horizontally (single linkage) are different people; with
-    #: several, start-up starts on the fullest group (up to three points) whose highest point (the
-    #: face) is nearest ``start_xy`` (:func:`nearest_person`); 0 = off
-    person_gap_m: float = 1.0
-    #: one view sees the person (one camera): start-up points placed at the depth where the foreground
-    #: centroid's ray comes down to the rest pose's centroid height, held to their rays, and to this
-    #: sigma (m) along them (:func:`one_view_start_points`); 0 = no start-up from one view
-    one_view_depth_sigma_m: float = 0.3
-    #: the start-up heading is read from the face's 2-D blob sizes (:func:`facing_direction`, the face check's
-    #: cue: face in front, neck behind) when they say something, else from the face's offset from the
-    #: foreground centroid; False = always the offset
-    facing_from_sizes: bool = True
-
-
-@dataclass
-class SkeletonConfig:
-    """All tunables of the 3-D estimators, one section each (config/skeleton.yaml)."""
-
-    measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
-    tracking: TrackingConfig = field(default_factory=TrackingConfig)
-    prior: PriorConfig = field(default_factory=PriorConfig)
-    fit: FitConfig = field(default_factory=FitConfig)
-    kinematic: KinematicConfig = field(default_factory=KinematicConfig)
-    dynamic: DynamicConfig = field(default_factory=DynamicConfig)
-    startup: StartupConfig = field(default_factory=StartupConfig)
-    #: {section: {field: value}} that replace the values above when the estimator has at most
-    #: ``few_cameras_max`` cameras (parts seen by one view constrain only their ray: ray-shaped
-    #: measurements, floor contact, upright trunk); config/skeleton.yaml ``few_cameras`` (a file's
-    #: fields are merged into these; ``max_cameras: 0`` turns them off)
-    few_cameras: dict = field(default_factory=lambda: {
-        "measurement": {"one_view_depth_sigma_m": 0.1},
-        "fit": {"ground_sigma_m": 0.005, "upright_sigma_m": 0.15},
-    })
-    #: ``few_cameras.max_cameras`` in the file
-    few_cameras_max: int = 2
-
-    def for_cameras(self, n_cameras: int) -> SkeletonConfig:
-        """This configuration for an estimator with ``n_cameras`` cameras (``few_cameras`` applied
-        for at most ``few_cameras_max``)."""
-        if n_cameras > self.few_cameras_max or not self.few_cameras:
-            return self
-        merged = dataclasses.asdict(self)
-        merged.pop("few_cameras_max")
-        merged["few_cameras"] = {"max_cameras": self.few_cameras_max, **self.few_cameras}
-        for section, values in self.few_cameras.items():
-            merged[section].update(values)
-        return load_skeleton_config(merged)
-
-
-def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = None) -> SkeletonConfig:
-    """SkeletonConfig from None (defaults), a SkeletonConfig, or a mapping of sections
-    (the parsed config/skeleton.yaml). Unknown sections / keys raise InputError."""
-    if config is None:
-        return SkeletonConfig()
-    if isinstance(config, SkeletonConfig):
-        return config
-    if not isinstance(config, Mapping):
-        raise InputError(f"skeleton config: expected a mapping of sections, got {type(config).__name__}")
-    out = SkeletonConfig()
-    sections = {f.name: f for f in dataclasses.fields(SkeletonConfig) if f.name != "few_cameras_max"}
-    for name, values in config.items():
-        if name not in sections:
-            raise InputError(f"skeleton config: unknown section '{name}' (known: {', '.join(sections)})")
-        if values is None:
-            continue
-        if not isinstance(values, Mapping):
-            raise InputError(f"skeleton config: section '{name}' must be a mapping")
-        if name == "few_cameras":
-            values = dict(values)
-            max_cameras = values.pop("max_cameras", out.few_cameras_max)
-            if isinstance(max_cameras, bool) or not isinstance(max_cameras, int) or max_cameras < 0:
-                raise InputError(f"skeleton config: field 'few_cameras.max_cameras' must be an integer >= 0 "
-                                 f"(got {max_cameras!r})")
-            if "few_cameras" in values:
-                raise InputError("skeleton config: section 'few_cameras' cannot hold 'few_cameras'")
-            load_skeleton_config(values)  # the same checks, on the overrides alone
-            for section, fields in values.items():  # (fields not given keep their default overrides)
-                out.few_cameras.setdefault(section, {}).update(fields or {})
-            out.few_cameras_max = max_cameras
-            continue
-        current = getattr(out, name)
-        known = {f.name: f for f in dataclasses.fields(current)}
-        for key, value in values.items():
-            if key not in known:
-                raise InputError(
-                    f"skeleton config: unknown field '{name}.{key}' (known: {', '.join(sorted(known))})"
-                )
-            default = getattr(current, key)
-            if isinstance(default, bool):
-                require_bool(value, f"skeleton config: field '{name}.{key}'")
-            if isinstance(default, list) and not isinstance(value, (list, tuple)):
-                # (list('l_hand') would be its letters)
-                raise InputError(f"skeleton config: field '{name}.{key}' must be a list, got {type(value).__name__}")
-            try:
-                value = type(default)(value)
-            except (TypeError, ValueError):
-                raise InputError(
-                    f"skeleton config: field '{name}.{key}' must be {type(default).__name__}"
-                ) from None
-            setattr(current, key, value)
-    xy = out.startup.start_xy
-    if len(xy) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in xy):
-        raise InputError("skeleton config: field 'startup.start_xy' must be two finite numbers (x, y), m")
-    non_negative = (("fit.ground_sigma_m", out.fit.ground_sigma_m),
-                    ("fit.upright_sigma_m", out.fit.upright_sigma_m),
-                    ("fit.mirror_screen_ratio", out.fit.mirror_screen_ratio),
-                    ("fit.mirror_prescreen_ratio", out.fit.mirror_prescreen_ratio),
-                    ("startup.start_radius_m", out.startup.start_radius_m),
-                    ("startup.person_gap_m", out.startup.person_gap_m),
-                    ("startup.one_view_depth_sigma_m", out.startup.one_view_depth_sigma_m),
-                    ("measurement.one_view_depth_sigma_m", out.measurement.one_view_depth_sigma_m),
-                    ("measurement.hidden_sigmas", out.measurement.hidden_sigmas),
-                    ("measurement.hidden_inset_px", out.measurement.hidden_inset_px),
-                    ("measurement.hidden_no_view_sigma_m", out.measurement.hidden_no_view_sigma_m),
-                    ("tracking.reach_gate_margin", out.tracking.reach_gate_margin))
-    for name, value in non_negative:
-        if value < 0:
-            raise InputError(f"skeleton config: field '{name}' must be >= 0 (got {value!r})")
-    if out.fit.max_nfev < 1:
-        raise InputError(f"skeleton config: field 'fit.max_nfev' must be >= 1 (got {out.fit.max_nfev!r})")
-    if out.fit.mirror_screen_abandon_after < 0:
-        raise InputError("skeleton config: field 'fit.mirror_screen_abandon_after' must be >= 0 "
-                         f"(got {out.fit.mirror_screen_abandon_after!r})")
-    if out.fit.mirror_screen_abandon_ratio < out.fit.mirror_screen_ratio:
-        raise InputError("skeleton config: field 'fit.mirror_screen_abandon_ratio' must be >= "
-                         f"fit.mirror_screen_ratio (got {out.fit.mirror_screen_abandon_ratio!r}): it would "
-                         "abandon screens that pass")
-    if not 1e-12 <= out.fit.tolerance < 1.0:
-        raise InputError(f"skeleton config: field 'fit.tolerance' must be in [1e-12, 1) (got {out.fit.tolerance!r})")
-    for name, groups in (("fit.mirror_groups", out.fit.mirror_groups),
-                         ("tracking.facing_turn_groups", out.tracking.facing_turn_groups)):
-        if not all(isinstance(g, (list, tuple)) and g and all(isinstance(p, str) and p for p in g) for g in groups):
-            raise InputError(f"skeleton config: field '{name}' must be a list of lists of part names "
-                             "(without the side prefix, e.g. [[thigh, shin], [shin]])")
-    if not all(isinstance(p, str) and p for p in out.measurement.view_association):
-        raise InputError("skeleton config: field 'measurement.view_association' must be a list of part names "
-                         "(without the side prefix, e.g. [thigh, shin])")
-    if out.measurement.view_association_margin_chi2 < 0:
-        raise InputError("skeleton config: field 'measurement.view_association_margin_chi2' must be >= 0")
-    if not out.measurement.view_outlier_chi2 >= 0:
-        raise InputError("skeleton config: field 'measurement.view_outlier_chi2' must be >= 0 (0 = off)")
-    if not isinstance(out.measurement.view_outlier_after_frames, int) or out.measurement.view_outlier_after_frames < 0:
-        raise InputError("skeleton config: field 'measurement.view_outlier_after_frames' must be an integer >= 0")
-    if not out.measurement.min_view_fraction >= 0:
-        raise InputError("skeleton config: field 'measurement.min_view_fraction' must be >= 0 (0 = off)")
-    if not 0.0 < out.measurement.hidden_miss_probability < 1.0:
-        raise InputError("skeleton config: field 'measurement.hidden_miss_probability' must be in (0, 1) "
-                         f"(got {out.measurement.hidden_miss_probability!r})")
-    if not 0.0 <= out.measurement.min_view_ray_angle_deg <= 90.0:
-        raise InputError("skeleton config: field 'measurement.min_view_ray_angle_deg' must be in [0, 90] degrees")
-    if not isinstance(out.measurement.min_view_labels, list) or not all(
-            isinstance(p, str) and p for p in out.measurement.min_view_labels):
-        raise InputError("skeleton config: field 'measurement.min_view_labels' must be a list of blob labels")
-    if not out.measurement.small_blob_fraction >= 0:
-        raise InputError("skeleton config: field 'measurement.small_blob_fraction' must be >= 0 (0 = off)")
-    parts = out.fit.overlap_parts
-    if not isinstance(parts, list) or not all(isinstance(p, str) and p for p in parts):
-        raise InputError("skeleton config: field 'fit.overlap_parts' must be a list of part names "
-                         "(e.g. [thigh, shin])")
-    if not out.fit.overlap_chi2 >= 0:
-        raise InputError("skeleton config: field 'fit.overlap_chi2' must be >= 0")
-    if out.measurement.blob_cov not in ("shape+state", "state"):
-        raise InputError("skeleton config: field 'measurement.blob_cov' must be 'shape+state' or 'state'")
-    if out.tracking.facing_check_frames < 0:
-        raise InputError("skeleton config: field 'tracking.facing_check_frames' must be >= 0 (0 = off)")
-    if not out.tracking.reseed_limb_sigma_m > 0:
-        raise InputError("skeleton config: field 'tracking.reseed_limb_sigma_m' must be > 0")
-    if out.tracking.facing_quick_frames < 0:
-        raise InputError("skeleton config: field 'tracking.facing_quick_frames' must be >= 0 (0 = off)")
-    if not -1.0 <= out.tracking.facing_quick_cosine <= 1.0:
-        raise InputError("skeleton config: field 'tracking.facing_quick_cosine' must be in [-1, 1]")
-    if not -1.0 <= out.tracking.facing_flip_cosine <= 1.0:
-        raise InputError("skeleton config: field 'tracking.facing_flip_cosine' must be in [-1, 1]")
-    if out.fit.predict_velocity_gain < 0 or not 0.0 < out.fit.predict_velocity_smoothing <= 1.0:
-        raise InputError("skeleton config: field 'fit.predict_velocity_gain' must be >= 0 and "
-                         "'fit.predict_velocity_smoothing' in (0, 1]")
-    if out.tracking.reacquire_separation_m < 0 or out.tracking.reacquire_reach_margin < 0:
-        raise InputError("skeleton config: fields 'tracking.reacquire_separation_m' and "
-                         "'tracking.reacquire_reach_margin' must be >= 0")
-    if not all(isinstance(p, str) and p for p in out.tracking.reacquire_labels):
-        raise InputError("skeleton config: field 'tracking.reacquire_labels' must be a list of blob labels "
-                         "(e.g. [l_hand, r_hand]; [] = off)")
-    if not isinstance(out.tracking.reach_gate_labels, list) or not all(
-            isinstance(p, str) and p for p in out.tracking.reach_gate_labels):
-        raise InputError("skeleton config: field 'tracking.reach_gate_labels' must be a list of blob labels "
-                         "(e.g. [l_shin, r_shin]; [] = off)")
-    if not isinstance(out.tracking.reach_gate_after_frames, int) or out.tracking.reach_gate_after_frames < 0:
-        raise InputError("skeleton config: field 'tracking.reach_gate_after_frames' must be an integer >= 0")
-    if not out.tracking.facing_min_size_ratio >= 1.0:
-        raise InputError("skeleton config: field 'tracking.facing_min_size_ratio' must be >= 1")
-    return out
 
 
 # =========================================================================== body kinematics
@@ -817,624 +391,6 @@ def _mass_properties(body: BodyModel) -> tuple[np.ndarray, np.ndarray, np.ndarra
             inertia += ms * (d @ d * np.eye(3) - np.outer(d, d))
         masses[i], inertias[i], com[i] = m, inertia + 1e-6 * np.eye(3), c
     return masses, inertias, com
-
-
-# =========================================================================== pose fit
-@dataclass
-class PointTarget:
-    """A fit target: link point ``local`` (link frame, m) should be at ``y`` (world, m)
-    with information ``info`` (3, 3) m⁻² (inverse covariance)."""
-
-    link: int
-    local: np.ndarray
-    y: np.ndarray
-    info: np.ndarray
-
-
-@dataclass
-class LinkGoals:
-    """Soft constraints on link motions for :func:`fit_pose`: for links (G,), the reference
-    poses' inverses (G, 4, 4) (link_from_world at the reference), the measured motions
-    xi_hat (G, 6) in the link frames and whiteners sqrt_information (G, 6, 6) (Sᵀ S = C)."""
-
-    links: np.ndarray
-    inverse_reference: np.ndarray
-    xi_hat: np.ndarray
-    sqrt_information: np.ndarray
-
-    @classmethod
-    def from_edges(cls, stats, sigma_px: float, min_found: int = 0) -> LinkGoals:
-        """From combined :class:`artrack.edge_fusion.LinkEdgeStatistics`; the information is
-        scaled by 1/sigma_px² (the edge measurement noise, px)."""
-        use = np.flatnonzero(stats.measured & (stats.samples_found >= min_found))
-        xi = stats.xi_hat()[use]
-        S = _whitener(np.array([stats.information[i] / sigma_px**2 for i in use]).reshape(-1, 6, 6))
-        return cls(use, inverse_se3(stats.reference[use]), xi, S)
-
-
-@dataclass
-class GroundContact:
-    """Soft floor contact for :func:`fit_pose`: the body's lowest points at rest (``links`` (F,),
-    ``local`` (F, 3) link frame, e.g. the ankles) stand ``height`` (F,) m above the floor at rest.
-    A person standing or walking on the floor z = ``floor_z`` (world, m) keeps at least one of them
-    there, and none below: residuals ``(min_k (z_k − h_k) − floor_z) / sigma`` and
-    ``min(z_k − h_k − floor_z, 0) / sigma`` per point (sigma, m)."""
-
-    links: np.ndarray
-    local: np.ndarray
-    height: np.ndarray
-    floor_z: float
-    sigma: float
-
-    @classmethod
-    def from_body(cls, body: BodyModel, sigma: float, floor_z: float = 0.0, tolerance_m: float = 0.05
-                  ) -> GroundContact:
-        """The output joints within ``tolerance_m`` of the lowest one at the rest pose (the body
-        model's rest pose stands on z = 0: the ankles), at their rest heights."""
-        z = body.joint_positions(body.rest_pose())[:, 2]
-        low = np.flatnonzero(z <= z.min() + tolerance_m)
-        return cls(body.joint_links[low], body.joint_points[low], z[low], float(floor_z), float(sigma))
-
-    def heights(self, world_from_link: np.ndarray) -> np.ndarray:
-        """(..., F) each point's height above its rest height over the floor, for poses (..., L, 4, 4), m."""
-        return BodyModel.transform_points(world_from_link, self.links, self.local)[..., 2] - self.height - self.floor_z
-
-    def residuals(self, world_from_link: np.ndarray) -> np.ndarray:
-        """(..., F + 1) whitened residuals for poses (..., L, 4, 4)."""
-        z = self.heights(world_from_link)
-        return np.concatenate([z.min(axis=-1, keepdims=True), np.minimum(z, 0.0)], axis=-1) / self.sigma
-
-    def jacobian(self, body: BodyModel, theta: np.ndarray, world_from_link: np.ndarray,
-                 twists: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """(F + 1, n_dof) Jacobian of :meth:`residuals` at theta (n_dof,) with poses world_from_link (L, 4, 4)
-        (``twists``: :meth:`BodyModel.dof_twists` there, if already computed)."""
-        z = self.heights(world_from_link)
-        dz = body.point_jacobian(theta, self.links, self.local, world_from_link, twists)[:, 2, :]
-        return np.vstack([dz[int(np.argmin(z))][None], np.where((z < 0.0)[:, None], dz, 0.0)]) / self.sigma
-
-
-@dataclass
-class UprightSegment:
-    """A soft upright body segment for :func:`fit_pose`, one of the soft priors of ALGORITHMS.md §1
-    ("Soft constraints": gravity, rest pose, joint limits): residuals ``(x_top − x_bottom)_xy / sigma``,
-    the horizontal offset (m) of a top point from a bottom one (link points), world z up; sigma m. Same
-    interface as :class:`GroundContact`. The trunk (pelvis → thorax, ``fit.upright_sigma_m``): with one
-    view, a trunk leaning towards or away from the camera looks the same, and a standing or walking
-    person keeps it near vertical. The head (its link's axis, :meth:`link_axis`,
-    ``fit.upright_head_sigma_m``): the head's blob (the face) sits a few cm from the neck pivot and
-    barely observes its pitch, and a person keeps the head near upright."""
-
-    links: np.ndarray  # (2,) link of bottom, top
-    local: np.ndarray  # (2, 3) their points in the link frames
-    sigma: float
-
-    @classmethod
-    def from_body(cls, body: BodyModel, sigma: float, bottom: str = "pelvis", top: str = "thorax") -> UprightSegment:
-        names = list(body.joint_names)
-        for n in (bottom, top):
-            if n not in names:
-                raise InputError(f"skeleton: an upright segment ({bottom} -> {top}) needs joint '{n}', "
-                                 "which the body model has not")
-        k = [names.index(bottom), names.index(top)]
-        return cls(np.asarray(body.joint_links)[k], np.asarray(body.joint_points, float)[k], float(sigma))
-
-    @classmethod
-    def link_axis(cls, body: BodyModel, sigma: float, link: str, joint: str) -> UprightSegment:
-        """The link's own z axis upright (the body model's rest pose stands every link's z axis
-        vertical): from the link's origin to the height of the output joint ``joint`` on it."""
-        if link not in body.link_names or joint not in body.joint_names:
-            raise InputError(f"skeleton: an upright {link} needs link '{link}' and joint '{joint}', "
-                             "which the body model has not")
-        i, j = body.link_names.index(link), body.joint_names.index(joint)
-        if int(body.joint_links[j]) != i:
-            raise InputError(f"skeleton: an upright {link}: joint '{joint}' is not on link '{link}'")
-        h = float(np.asarray(body.joint_points, float)[j][2])
-        return cls(np.array([i, i]), np.array([[0.0, 0.0, 0.0], [0.0, 0.0, h]]), float(sigma))
-
-    def residuals(self, world_from_link: np.ndarray) -> np.ndarray:
-        """(..., 2) whitened residuals for poses (..., L, 4, 4)."""
-        x = BodyModel.transform_points(world_from_link, self.links, self.local)
-        return (x[..., 1, :2] - x[..., 0, :2]) / self.sigma
-
-    def jacobian(self, body: BodyModel, theta: np.ndarray, world_from_link: np.ndarray,
-                 twists: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """(2, n_dof) Jacobian of :meth:`residuals` at theta."""
-        J = body.point_jacobian(theta, self.links, self.local, world_from_link, twists)
-        return (J[1, :2, :] - J[0, :2, :]) / self.sigma
-
-
-class BodyTerms:
-    """Several :class:`GroundContact`-like soft terms given to :func:`fit_pose` as one (its ``ground``)."""
-
-    def __init__(self, terms: Sequence[Any]):
-        self.terms = list(terms)
-
-    def residuals(self, world_from_link: np.ndarray) -> np.ndarray:
-        return np.concatenate([t.residuals(world_from_link) for t in self.terms], axis=-1)
-
-    def jacobian(self, body: BodyModel, theta: np.ndarray, world_from_link: np.ndarray,
-                 twists: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        return np.vstack([t.jacobian(body, theta, world_from_link, twists) for t in self.terms])
-
-
-def _whitener(info: np.ndarray) -> np.ndarray:
-    """U with Uᵀ U = info (so ‖U e‖² = eᵀ info e); eigenvalues floored. info: (n, n) or a stack
-    (..., n, n) of them (one batched ``eigh``)."""
-    info = np.asarray(info, float)
-    w, V = np.linalg.eigh(0.5 * (info + np.swapaxes(info, -1, -2)))
-    return np.ascontiguousarray(np.swapaxes(V * np.sqrt(np.maximum(w, 1e-12))[..., None, :], -1, -2))
-
-
-def fit_pose(
-    body: BodyModel,
-    theta0: np.ndarray,
-    targets: Sequence[PointTarget],
-    rest: np.ndarray | None = None,
-    rest_sigma: float | np.ndarray = 1.0,
-    previous: np.ndarray | None = None,
-    previous_sigma: float = 1.0,
-    max_nfev: int = 40,
-    robust_scale: float = 0.0,
-    link_goals: LinkGoals | None = None,
-    ground: GroundContact | None = None,
-    jacobian: str = "analytic",
-    tolerance: float = 1e-8,
-    free_dofs: np.ndarray | None = None,
-    evaluate_only: bool = False,
-    abandon: tuple[int, float] | None = None,
-) -> tuple[np.ndarray, float, np.ndarray]:
-    """Bounded least-squares fit of theta to 3-D point targets (and, optionally, link motions).
-
-    Minimises ``½ Σ ‖U_k (x_k(θ) − y_k)‖² + ½ Σ_j ((θ_j − rest_j)/σ_r)² + ½ Σ_j ((θ_j −
-    prev_j)/σ_p)²`` (regularisers on the non-root dofs j) subject to the joint limits
-    (``scipy.optimize.least_squares``, 'trf'). jacobian: ``'analytic'`` (default) —
-    :meth:`BodyModel.point_jacobian` / :meth:`BodyModel.link_twist_jacobian` (exact for the point,
-    floor and regulariser residuals; for link goals the log map's Jacobian is taken to first order
-    in the link's motion ξ from its reference, ``J_r⁻¹(ξ) ≈ I + ½ ad(ξ)``, error O(|ξ|²)) — or ``'numeric'``: forward
-    differences, all dofs in one batched FK call (the same fits, tested). tolerance: scipy's ftol = xtol
-    = gtol (``fit.tolerance``; most frames stop on it, the others at max_nfev). rest_sigma: scalar or
-    per-dof (n_dof,) rad. robust_scale > 0: Cauchy loss
-    on the whitened residuals with this scale (sigmas), so that a grossly wrong target (a
-    mislabelled blob) pulls little; it applies to every residual, the regularisers' too (scipy's
-    ``loss``); 0: plain least squares. link_goals: soft constraints on
-    link poses, ``½ Σ_i ‖S_i (log(E_ref,i⁻¹ E_i(θ)) − ξ̂_i)‖²`` (the edge statistics of
-    ALGORITHMS.md §2 as information ``S_iᵀ S_i`` on each link's motion, in the link frame).
-    ground: soft floor contact (:class:`GroundContact`), whitened residuals like the others.
-    free_dofs: indices of the dofs to fit, the others held at theta0 (a conditional fit; the
-    cost still counts every residual, so conditional costs of fits that share the held dofs
-    compare). Returns (theta (n_dof,), cost, cov_theta (n_dof, n_dof) = (JᵀJ)⁺ at the solution,
-    robust weights included; zero rows and columns for held dofs). evaluate_only: no fit, the cost at
-    theta0 (as clipped into the limits; scipy's cost, the loss included) with a zero covariance.
-    abandon: (k, c): stop after iteration k if the cost is still above c (a screen that cannot
-    pass; the cost returned is then that iteration's, above c).
-    """
-    lo, hi = body.lower, body.upper
-    span = np.maximum(hi - lo, 1e-9)
-    x0 = np.clip(np.asarray(theta0, float), lo + 1e-7 * span, hi - 1e-7 * span)
-    links = np.array([t.link for t in targets], int)
-    local = np.array([t.local for t in targets], float).reshape(-1, 3)
-    y = np.array([t.y for t in targets], float).reshape(-1, 3)
-    U = _whitener(np.array([t.info for t in targets], float).reshape(-1, 3, 3))
-    jd = np.arange(6, body.n_dof)
-    reg_w, reg_c = [], []
-    rest_sigma = np.broadcast_to(np.asarray(rest_sigma, float), (body.n_dof,))[jd]
-    if rest is not None and np.all(rest_sigma > 0):
-        reg_w.append(1.0 / rest_sigma)
-        reg_c.append(np.asarray(rest, float)[jd])
-    if previous is not None and previous_sigma > 0:
-        reg_w.append(np.full(jd.size, 1.0 / previous_sigma))
-        reg_c.append(np.asarray(previous, float)[jd])
-
-    # The link poses of the last single theta evaluated: scipy asks for the Jacobian where it has
-    # just evaluated the residuals, so the analytic Jacobian reuses them.
-    last = {}
-
-    def poses(theta: np.ndarray) -> np.ndarray:
-        if theta.ndim == 1 and "theta" in last and np.array_equal(theta, last["theta"]):
-            return last["T"]
-        T = body.forward_kinematics(theta)
-        if theta.ndim == 1:
-            last["theta"], last["T"] = theta.copy(), T
-        return T
-
-    def residuals(theta: np.ndarray) -> np.ndarray:
-        T = poses(theta)
-        x = body.transform_points(T, links, local)
-        r = [np.einsum("pij,...pj->...pi", U, x - y).reshape(*x.shape[:-2], -1)]
-        if link_goals is not None and len(link_goals.links):
-            g = link_goals
-            xi = log_se3(np.einsum("gij,...gjk->...gik", g.inverse_reference, T[..., g.links, :, :]))
-            r.append(np.einsum("gij,...gj->...gi", g.sqrt_information, xi - g.xi_hat).reshape(*x.shape[:-2], -1))
-        if ground is not None:
-            r.append(ground.residuals(T))
-        for w, c in zip(reg_w, reg_c, strict=True):
-            r.append(np.broadcast_to(w * (theta[..., jd] - c), (*x.shape[:-2], jd.size)))
-        return np.concatenate(r, axis=-1)
-
-    h = 1e-6
-    reg_rows = [np.zeros((jd.size, body.n_dof)) for _ in reg_w]
-    for rows, w in zip(reg_rows, reg_w, strict=True):
-        rows[np.arange(jd.size), jd] = w
-
-    def jac_numeric(theta):
-        batch = theta[None] + h * np.eye(body.n_dof)
-        batch = np.vstack([theta[None], batch])
-        r = residuals(batch)
-        return ((r[1:] - r[0]) / h).T
-
-    def jac_analytic(theta):
-        T = poses(theta)
-        twists = body.dof_twists(theta, T)
-        J_points = body.point_jacobian(theta, links, local, T, twists)
-        out = [np.einsum("pij,pjd->pid", U, J_points).reshape(-1, body.n_dof)]
-        if link_goals is not None and len(link_goals.links):
-            g = link_goals
-            xi = log_se3(g.inverse_reference @ T[g.links])
-            ad = np.zeros((len(xi), 6, 6))  # ad(xi) = [[skew(w), skew(v)], [0, skew(w)]]
-            ad[:, :3, :3] = ad[:, 3:, 3:] = skew(xi[:, 3:])
-            ad[:, :3, 3:] = skew(xi[:, :3])
-            dlog = np.eye(6) + 0.5 * ad
-            B = body.link_twist_jacobian(theta, g.links, T, twists)
-            out.append(np.einsum("gij,gjk,gkd->gid", g.sqrt_information, dlog, B).reshape(-1, body.n_dof))
-        if ground is not None:
-            out.append(ground.jacobian(body, theta, T, twists))
-        out.extend(reg_rows)
-        return np.concatenate(out, axis=0)
-
-    if jacobian not in ("analytic", "numeric"):
-        raise ValueError(f"fit_pose: jacobian must be 'analytic' or 'numeric', got {jacobian!r}")
-    fun, jac = residuals, (jac_analytic if jacobian == "analytic" else jac_numeric)
-
-    if len(targets) == 0 and not reg_w and (link_goals is None or not len(link_goals.links)):
-        return x0, 0.0, np.eye(body.n_dof)
-    free = np.arange(body.n_dof) if free_dofs is None else np.asarray(free_dofs, int)
-
-    def expand(x):  # the held dofs stay at x0
-        theta = x0.copy()
-        theta[free] = x
-        return theta
-
-    def fit_fun(x):
-        return fun(expand(x))
-
-    def fit_jac(x):
-        return jac(expand(x))[:, free]
-
-    loss = ("cauchy", float(robust_scale)) if robust_scale > 0 else ("linear", 1.0)
-    if evaluate_only:
-        r2 = np.square(fit_fun(x0[free]))
-        c = robust_scale ** 2 * np.log1p(r2 / robust_scale ** 2) if robust_scale > 0 else r2
-        return x0, 0.5 * float(np.sum(c)), np.zeros((body.n_dof, body.n_dof))
-    callback = None
-    if abandon is not None:
-        iterations = [0]
-
-        def callback(intermediate_result):
-            iterations[0] += 1
-            if iterations[0] == abandon[0] and intermediate_result.cost > abandon[1]:
-                raise StopIteration
-
-    res = least_squares(fit_fun, x0[free], jac=fit_jac, bounds=(lo[free], hi[free]), method="trf",
-                        max_nfev=max_nfev, x_scale=1.0, loss=loss[0], f_scale=loss[1], ftol=tolerance,
-                        xtol=tolerance, gtol=tolerance, callback=callback)
-    J = res.jac
-    cov = np.zeros((body.n_dof, body.n_dof))
-    cov[np.ix_(free, free)] = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True)
-    return expand(res.x), float(res.cost), cov
-
-
-def _exchange_sides(body: BodyModel, theta: np.ndarray, labels) -> np.ndarray:
-    """theta with the joints of each l_/r_ link pair among ``labels`` (link names) exchanged and
-    mirrored across the body's sagittal plane (the link frames' x-z plane at rest, body model
-    convention: x forward, y left): a ball joint's rotation vector (x, y, z) becomes (-x, y, -z),
-    a hinge angle keeps its sign when the mirrored axis is the other side's axis and flips it
-    when it is opposite. Clipped to the joint limits."""
-    out = np.array(theta, float)
-    mirror = np.diag([1.0, -1.0, 1.0])
-    names = set(body.link_names)
-    for left in sorted(lab for lab in labels if lab.startswith("l_") and lab in names and _mirror_label(lab) in names):
-        a, b = body.link(left), body.link(_mirror_label(left))
-        if a.joint != b.joint or a.n_dof != b.n_dof or a.joint not in ("ball", "hinge"):
-            continue
-        ta, tb = theta[a.dof_slice].copy(), theta[b.dof_slice].copy()
-        if a.joint == "ball":
-            out[a.dof_slice], out[b.dof_slice] = -mirror @ tb, -mirror @ ta
-        else:
-            sign = 1.0 if float(-mirror @ a.axis @ b.axis) >= 0.0 else -1.0
-            out[a.dof_slice], out[b.dof_slice] = sign * tb, sign * ta
-    return body.clip(out)
-
-
-def _mirror_label(label: str) -> str:
-    """'l_hand' <-> 'r_hand'; other labels unchanged."""
-    if label.startswith("l_"):
-        return "r_" + label[2:]
-    if label.startswith("r_"):
-        return "l_" + label[2:]
-    return label
-
-
-def _heading(R_root: np.ndarray) -> float:
-    """Yaw (rad) of the root's forward (+x) axis projected on the floor."""
-    return math.atan2(float(R_root[1, 0]), float(R_root[0, 0]))
-
-
-def _forward_xy(world_from_link: np.ndarray) -> np.ndarray:
-    """The horizontal unit direction (2,) of a link's forward (+x) axis, world xy."""
-    x = world_from_link[:2, 0]
-    return x / max(float(np.linalg.norm(x)), 1e-9)
-
-
-def facing_direction(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera], origin: np.ndarray,
-                     min_size_ratio: float = 2.0) -> np.ndarray | None:
-    """The horizontal way a part faces by its 2-D blob sizes (the face check of ``tracking.facing_*``):
-    a unit (2,) world xy vector. ``blobs``: camera -> that part's Blob2D; each view's size at 1 m is
-    its pixel count x the squared distance from the camera centre to ``origin`` (the link origin,
-    world m), and the sizes are fitted as ``a + c · u_k`` (u_k: the horizontal unit direction from
-    the link to camera k, least squares): c is the way the larger blobs lie.
-
-    The head's skin-coloured blob is the face in the views it looks at and only the neck in the
-    views behind it (the hair covers the rest): about 4x larger at 1 m (synthetic seeds 1, 12:
-    correlation with the cosine of each camera's bearing from the true facing 0.79, 0.85). Pixel
-    counts must be real ones (shrinking with the squared distance). None with fewer than three
-    views, views in a line, or the largest size less than ``min_size_ratio`` times the smallest
-    (alike from every side)."""
-    origin = np.asarray(origin, float)
-    size, rows = [], []
-    for name, blob in blobs.items():
-        to_camera = np.asarray(cameras[name].center, float) - origin
-        horizontal = float(np.linalg.norm(to_camera[:2]))
-        if horizontal < 1e-6:
-            continue
-        size.append(blob.pixel_count * float(to_camera @ to_camera))
-        rows.append([1.0, *(to_camera[:2] / horizontal)])
-    if len(size) < 3 or max(size) < min_size_ratio * max(min(size), 1e-12):
-        return None
-    A = np.array(rows)
-    if np.linalg.matrix_rank(A, tol=1e-3) < 3:
-        return None
-    c = np.linalg.lstsq(A, np.asarray(size) / np.mean(size), rcond=None)[0][1:]
-    norm = float(np.linalg.norm(c))
-    return None if norm < 1e-9 else c / norm
-
-
-def facing_agreement(blobs: Mapping[str, Blob2D], cameras: Mapping[str, Camera],
-                     world_from_link: np.ndarray, min_size_ratio: float = 2.0) -> float | None:
-    """Whether a part's 2-D blob sizes say it faces the way it is posed: the cosine of the
-    horizontal angle between the link's forward (+x) axis and :func:`facing_direction`
-    (``world_from_link``: (4, 4) the link's pose). A body tracked facing backwards, with every
-    left/right label swapped to match, explains the blobs' positions as well as the right one,
-    but not the head's sizes: about -1 there; a heading off sideways gives about 0. None when
-    the sizes say nothing (see :func:`facing_direction`)."""
-    direction = facing_direction(blobs, cameras, world_from_link[:3, 3], min_size_ratio)
-    return None if direction is None else float(_forward_xy(world_from_link) @ direction)
-
-
-def _same_blobs(a: Mapping[str, Sequence[Blob2D]], b: Mapping[str, Sequence[Blob2D]]) -> bool:
-    """Whether {camera: [Blob2D]} a and b hold the very same blob objects, camera by camera, in order."""
-    return a.keys() == b.keys() and all(
-        len(a[c]) == len(bl) and all(x is y for x, y in zip(a[c], bl, strict=True)) for c, bl in b.items())
-
-
-# =========================================================================== start-up
-def _in_gate(blob: Blob2D, uv: np.ndarray, gate_sigma: float, gate_px: float) -> tuple[bool, float]:
-    r = np.asarray(uv, float) - np.asarray(blob.mean, float)
-    d_px = float(np.linalg.norm(r))
-    try:
-        d2 = float(r @ np.linalg.solve(np.asarray(blob.cov, float).reshape(2, 2), r))
-    except np.linalg.LinAlgError:
-        d2 = np.inf
-    return (d2 <= gate_sigma**2 or d_px <= gate_px), d_px
-
-
-def _nearest_in_gate(blobs: Sequence[Blob2D], uv: np.ndarray, gate_sigma: float, gate_px: float) -> int | None:
-    """Index of the blob nearest (px) to ``uv`` among those whose gate (:func:`_in_gate`) holds it, or None."""
-    best, best_d = None, np.inf
-    for k, blob in enumerate(blobs):
-        inside, d = _in_gate(blob, uv, gate_sigma, gate_px)
-        if inside and d < best_d:
-            best, best_d = k, d
-    return best
-
-
-def nearest_person(points: list, xy: np.ndarray, gap_m: float) -> list:
-    """The start-up skin points (:func:`match_skin_blobs` tuples, point first) of the person nearest
-    ``xy`` (2,) m: the points are grouped by single linkage on their horizontal distances (groups
-    farther apart than ``gap_m`` are different people); of the groups with the most points (up to
-    three: a face and two hands; a lone point is more often a ghost), the one whose highest point
-    (the face) lies nearest ``xy`` horizontally is returned, in the input order."""
-    if len(points) < 2:
-        return points
-    xy_all = np.array([p[0][:2] for p in points], float)
-    group = fcluster(linkage(xy_all, "single"), gap_m, criterion="distance")
-    groups = {g: np.flatnonzero(group == g) for g in set(group.tolist())}
-    if len(groups) == 1:
-        return points
-
-    def rank(members: np.ndarray) -> tuple[int, float]:
-        top = max(members, key=lambda i: points[i][0][2])
-        return -min(len(members), 3), float(np.linalg.norm(xy_all[top] - xy))
-
-    best = min(groups, key=lambda g: rank(groups[g]))
-    return [p for p, g in zip(points, group, strict=True) if g == best]
-
-
-def blob_size_m(camera: Camera, blob: Blob2D, depth_m: float) -> float:
-    """The physical size (m) a 2-D blob implies at ``depth_m`` (m, along the camera's axis): the side of
-    the square of its area, as a uniform ellipse of its covariance (area 4π √det C px²), times the
-    pinhole scale depth / f."""
-    det = max(float(np.linalg.det(np.asarray(blob.cov, float).reshape(2, 2))), 0.0)
-    f = math.sqrt(float(camera.K[0, 0]) * float(camera.K[1, 1]))
-    return math.sqrt(4.0 * math.pi * math.sqrt(det)) * float(depth_m) / f
-
-
-def match_skin_blobs(
-    skin_by_camera: Mapping[str, Sequence[Blob2D]],
-    cameras: Mapping[str, Camera],
-    max_points: int = 3,
-    gate_sigma: float = 3.0,
-    gate_px: float = 4.0,
-    missing_view_penalty_px: float = 10.0,
-    max_size_m: float = 0.0,
-    share_taken_views: bool = False,
-    share_min_separation_m: float = 0.0,
-) -> list[tuple[np.ndarray, float, tuple[str, ...], Blob3D]]:
-    """Match unlabelled skin blobs across views into at most ``max_points`` 3-D points.
-
-    Every pair of blobs from two cameras whose rays meet (midpoint in front of both,
-    reprojecting inside both blobs: Mahalanobis ≤ gate_sigma in the blob's 2-D
-    covariance, or ≤ gate_px) seeds a candidate, which is extended by the gated
-    nearest blob of every other camera and triangulated; its score is the mean
-    reprojection error (px) plus ``missing_view_penalty_px`` per camera with skin
-    blobs that it does not see. Candidates are taken greedily by score, never
-    sharing a 2-D blob. ``max_size_m`` > 0: a blob larger than this at the point
-    (:func:`blob_size_m`; a hand merged in that view with a ghost of the background or
-    another skin region) sees the point but does not locate it: it counts among the
-    point's views, not in its triangulation, and cannot seed a pair. ``share_taken_views``:
-    a candidate whose extension took a blob that a better point has already taken (two hands
-    merged in that view) is not dropped: that view sees it without locating it, and it is
-    triangulated again from its other blobs if at least two remain; but not when that better
-    point is the highest so far (the face): a ghost of the start position near the head lined up
-    with the face's blobs (synthetic default scene, seed 21), nor when the two points are less than
-    ``share_min_separation_m`` apart horizontally (the other hand stands beside a hand; a skin
-    point stacked above it is more often its forearm or a ghost: self-occlusion seed 44). Returns [(X (3,)
-    world m, score px, the names of the cameras that see it, the triangulated Blob3D
-    (label 'skin'; its cameras those that locate it))], best first.
-    """
-    names = sorted(c for c, bl in skin_by_camera.items() if len(bl) and c in cameras)
-    if len(names) < 2:
-        return []
-
-    def oversized_at(c: str, k: int, depth_m: float) -> bool:
-        return max_size_m > 0 and blob_size_m(cameras[c], skin_by_camera[c][k], depth_m) > max_size_m
-
-    rays = {}
-    for c in names:
-        uv = np.array([np.asarray(b.mean, float) for b in skin_by_camera[c]]).reshape(-1, 2)
-        o, d = cameras[c].rays(uv)
-        rays[c] = (o, d)
-    cands: dict[frozenset, tuple[np.ndarray, float, tuple[str, ...], Blob3D]] = {}
-    for ci, cj in itertools.combinations(names, 2):
-        for a in range(len(skin_by_camera[ci])):
-            for b in range(len(skin_by_camera[cj])):
-                X, spread = midpoint(
-                    np.stack([rays[ci][0], rays[cj][0]]), np.stack([rays[ci][1][a], rays[cj][1][b]])
-                )
-                if spread < 1e-6:
-                    continue
-                members = {ci: a, cj: b}
-                ok = True
-                for c, k in members.items():
-                    uv, depth = cameras[c].project(X[None])
-                    if (depth[0] <= 0 or not _in_gate(skin_by_camera[c][k], uv[0], gate_sigma, gate_px)[0]
-                            or oversized_at(c, k, depth[0])):
-                        ok = False
-                        break
-                if not ok:
-                    continue
-                oversized: dict[str, int] = {}
-                for ck in names:
-                    if ck in members:
-                        continue
-                    uv, depth = cameras[ck].project(X[None])
-                    if depth[0] <= 0:
-                        continue
-                    best = _nearest_in_gate(skin_by_camera[ck], uv[0], gate_sigma, gate_px)
-                    if best is None:
-                        continue
-                    if oversized_at(ck, best, depth[0]):
-                        oversized[ck] = best
-                    else:
-                        members[ck] = best
-                key = frozenset(members.items()) | frozenset(oversized.items())
-                if key in cands:
-                    continue
-                blob = triangulate_blob(
-                    [(cameras[c], skin_by_camera[c][k]) for c, k in sorted(members.items())]
-                )
-                if blob is None:
-                    continue
-                errs = []
-                for c, k in members.items():
-                    uv, _ = cameras[c].project(blob.mean[None])
-                    errs.append(float(np.linalg.norm(uv[0] - np.asarray(skin_by_camera[c][k].mean, float))))
-                seen = len(members) + len(oversized)
-                score = float(np.mean(errs)) + missing_view_penalty_px * (len(names) - seen)
-                cands[key] = (blob.mean, score, tuple(sorted([*members, *oversized])), blob, members)
-    out = []
-    owner: dict = {}  # a taken 2-D blob -> the index in ``out`` of the point that took it
-    for key, (X, score, cams, blob, members) in sorted(cands.items(), key=lambda kv: kv[1][1]):
-        taken = [m for m in key if m in owner]
-        if taken:
-            # Shared only with points below the highest one so far (the face: see the docstring).
-            highest = max(range(len(out)), key=lambda i: float(out[i][0][2]))
-            free = {c: k for c, k in members.items() if (c, k) not in owner}
-            if not share_taken_views or len(free) < 2 or any(owner[m] == highest for m in taken):
-                continue
-            blob = triangulate_blob([(cameras[c], skin_by_camera[c][k]) for c, k in sorted(free.items())])
-            if blob is None or any(np.linalg.norm(blob.mean[:2] - out[owner[m]][0][:2]) < share_min_separation_m
-                                   for m in taken):
-                continue
-            X = blob.mean
-        owner.update(dict.fromkeys((m for m in key if m not in owner), len(out)))
-        out.append((X, score, cams, blob))
-        if len(out) >= max_points:
-            break
-    return out
-
-
-def one_view_start_points(
-    camera: Camera,
-    foreground: Blob2D,
-    skin: Sequence[Blob2D],
-    centre_height_m: float,
-    max_points: int = 3,
-) -> tuple[np.ndarray, list[tuple[np.ndarray, float, tuple[str, ...]]]] | None:
-    """Start-up points from a single view, where no ray meets another (ALGORITHMS.md §1, automatic
-    start-up; one camera "still constrains the ray"): depth from the floor instead of a second view.
-
-    The person stands on the floor (z = 0, REP 103 z up), so the body's centroid lies at about
-    ``centre_height_m`` (the rest pose's): the foreground blob's viewing ray is cut at that height.
-    The skin blobs (largest first, at most ``max_points``) are placed on their rays at the centre's
-    depth, in the vertical plane through the centre that faces the camera (a hand reaching towards
-    or away from the camera is off that plane; the fit's ray-shaped targets leave it free there).
-
-    Returns (centre (3,) world m, [(X (3,), pixel count, (camera name,))], largest first; every point
-    lies on its ray, so ``X - camera.center`` is its direction), or None when the centroid's ray does
-    not come down to that height in front of the camera (a camera at the centroid's height or below
-    it, or one looking up: no floor cue).
-    """
-    origin, dirs = camera.rays(np.asarray(foreground.mean, float).reshape(1, 2))
-    d = dirs[0]
-    if abs(d[2]) < 1e-3:
-        return None
-    t = (centre_height_m - origin[2]) / d[2]
-    if t <= 0.3:
-        return None
-    centre = origin + t * d
-    n = centre - origin
-    n[2] = 0.0
-    n /= np.linalg.norm(n)
-    blobs = sorted(skin, key=lambda b: -b.pixel_count)[:max_points]
-    points: list[tuple[np.ndarray, float, tuple[str, ...]]] = []
-    if blobs:
-        _, sd = camera.rays(np.array([np.asarray(b.mean, float) for b in blobs]).reshape(-1, 2))
-        for b, ds in zip(blobs, sd, strict=True):
-            denom = float(ds @ n)
-            if denom <= 1e-3:
-                continue
-            s = float((centre - origin) @ n) / denom
-            points.append((origin + s * ds, float(b.pixel_count), (camera.name,)))
-    return centre, points
-
-
-def ray_information(direction: np.ndarray, sigma_across_m: float, sigma_along_m: float) -> np.ndarray:
-    """(3, 3) information of a point known to sigma_across_m off a viewing ray of ``direction``
-    (any length) and to sigma_along_m along it (one view's point; depth from a weaker cue)."""
-    d = np.asarray(direction, float).reshape(3)
-    d = d / np.linalg.norm(d)
-    along = np.outer(d, d)
-    return (np.eye(3) - along) / sigma_across_m**2 + along / sigma_along_m**2
 
 
 # =========================================================================== estimators
@@ -1952,7 +908,7 @@ class _Estimator:
         keep = set(keep)
         out = {}
         for lab, blob in obs.items():
-            m = lab if lab[2:] in keep else _mirror_label(lab)
+            m = lab if lab[2:] in keep else mirror_label(lab)
             if m in self.labels:
                 out[m] = dataclasses.replace(blob, label=m)
         return out
@@ -1974,7 +930,7 @@ class _Estimator:
         direction = facing_direction(blobs, self.cameras, pose[:3, 3], t.facing_min_size_ratio)
         if direction is None:
             return
-        self._facing = (self._facing + [float(_forward_xy(pose) @ direction)])[-t.facing_check_frames:]
+        self._facing = (self._facing + [float(forward_xy(pose) @ direction)])[-t.facing_check_frames:]
         self._facing_ways = (self._facing_ways + [direction])[-t.facing_check_frames:]
         n = len(self._facing)
         if n >= t.facing_check_frames and np.mean(self._facing) < t.facing_flip_cosine:
@@ -1985,7 +941,7 @@ class _Estimator:
             return
         way = np.mean(ways, axis=0)
         yaw = (math.atan2(way[1], way[0]) if np.linalg.norm(way) > 0.1
-               else _heading(exp_so3(self.theta[3:6])) + math.pi)
+               else root_heading(exp_so3(self.theta[3:6])) + math.pi)
         # Each turn group's labels are kept where, as labelled, its left parts lie left of its right
         # ones at the heading turned to (a lone part: on its own side of the root), as the
         # start-up orders its hands; exchanged otherwise, as every other sided label is.
@@ -2025,7 +981,7 @@ class _Estimator:
             tolerance=f.tolerance,
         )
         if self._flip_theta is None:
-            yaw = _heading(exp_so3(self.theta[3:6])) + math.pi
+            yaw = root_heading(exp_so3(self.theta[3:6])) + math.pi
             theta_f, cost_f = self._init_fit(targets_m, self._rest_at(self.theta[0:3], yaw))
         else:
             theta_f, cost_f, _ = fit_pose(
@@ -2269,7 +1225,7 @@ class _Estimator:
                 targets.append(PointTarget(0, np.array([1.0, 0.0, 0.0]), root + fwd, info_y))
             theta, cost = self._init_fit(targets, self._rest_at(root, yaw))
             if yaw_face is not None:
-                yaw_fit = _heading(exp_so3(theta[3:6]))
+                yaw_fit = root_heading(exp_so3(theta[3:6]))
                 cost += s.facing_weight * (1.0 - math.cos(yaw_fit - yaw_face))
             if best is None or cost < best[1]:
                 best = (theta, cost)
@@ -2292,7 +1248,7 @@ class _Estimator:
             uv, depth = self.cameras[name].project(face[None])
             if depth[0] <= 0:
                 continue
-            k = _nearest_in_gate(bl, uv[0], s.match_gate_sigma, s.match_gate_px)
+            k = nearest_in_gate(bl, uv[0], s.match_gate_sigma, s.match_gate_px)
             if k is not None:
                 blobs[name] = bl[k]
         way = facing_direction(blobs, self.cameras, face, self.cfg.tracking.facing_min_size_ratio)
@@ -2468,7 +1424,7 @@ class BaselineEstimator(_Estimator):
             swapped = {side + part for part in group if "l_" + part in obs and "r_" + part in obs
                        for side in ("l_", "r_")}
             if swapped:  # each label takes its mirror's blob (the labels keep obs' order)
-                source = {k: obs[_mirror_label(k)] if k in swapped else obs[k] for k in obs}
+                source = {k: obs[mirror_label(k)] if k in swapped else obs[k] for k in obs}
                 free = self._own_dofs(swapped, obs, carry_below=True)
                 out.append(({k: dataclasses.replace(b, label=k) for k, b in source.items()}, free, swapped))
         return out
@@ -2549,7 +1505,7 @@ class BaselineEstimator(_Estimator):
             targets_m = self._blob_targets(mirrored) + axis
             prior = (self.kin.rest, self.rest_sigma_dof, self.theta, f.previous_sigma_rad)
             rest = (f.robust_scale, goals, self._ground)
-            theta_m, cost_m = _exchange_sides(self.body, theta, swapped), 0.0
+            theta_m, cost_m = exchange_sides(self.body, theta, swapped), 0.0
             if free.size:  # (no dof of their own: straight to the full fit)
                 _, cost_m, _ = fit_pose(self.body, theta_m, targets_m, *prior, f.max_nfev, *rest, evaluate_only=True)
                 if cost_m >= f.mirror_prescreen_ratio * cost:
@@ -2822,7 +1778,7 @@ class KinematicEstimator(_Estimator):
         pair out): the same function of the same input, computed once."""
         if self.raw is not None and self.raw._association is not None:
             seen, result = self.raw._association
-            if _same_blobs(seen, labelled):
+            if same_blobs(seen, labelled):
                 self._association = (labelled, result)
                 out, swaps = result
                 return {c: list(bl) for c, bl in out.items()}, {c: list(p) for c, p in swaps.items()}
@@ -2835,7 +1791,7 @@ class KinematicEstimator(_Estimator):
         priors: the same blobs as triangulating all of them again, in the same order (those others to
         the last bits: solved in a smaller batch, the cameras' projections take another BLAS path)."""
         raw = self.raw._triangulation if self.raw is not None else None
-        if raw is None or not _same_blobs(raw[0], labelled):
+        if raw is None or not same_blobs(raw[0], labelled):
             return super()._triangulate_labelled(labelled, priors)
         _, raw_obs, raw_free = raw
         rest = {c: [b for b in bl if b.label not in raw_free] for c, bl in labelled.items()}
