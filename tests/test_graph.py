@@ -204,6 +204,38 @@ def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small
                for c in ("cam01", "cam02", "cam03", "cam04"))
 
 
+def test_refinement_unanswered_by_the_edge_nodes_switches_it_off(tmp_path_factory, small_scene, env, edge_config):
+    """With edges, the blob_features nodes answer the skeleton's refinement but the edge_features nodes
+    do not (``answer_refinements`` false): the skeleton gives the first pass up after its
+    ``refine_timeout_s`` and switches refinement off with one warning naming the edge statistics, so
+    the later start-up frames do not each wait as long (before, each of the 10 was asked for and given
+    up in turn); every frame gets one body, and an edge node says once that it does not measure again."""
+    out = tmp_path_factory.mktemp("graph_refine_edges_unanswered")
+    graph = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
+    for node in graph["nodes"]:
+        if node["name"] == "edge_features_{camera}":
+            node["parameters"]["answer_refinements"] = False
+        if node["name"] == "skeleton":
+            node["parameters"]["refine_timeout_s"] = 1.0
+    path = out / "graph.yaml"
+    path.write_text(yaml.safe_dump(graph))
+    live = _launch(out, small_scene, env, "edges=true", f"edge_config={edge_config}", graph=str(path), timeout_s=300)
+    bodies = _bodies(live)
+    assert len(bodies) == FRAMES, "every frame gets one body"
+    tracked = sorted(s for s, joints in bodies.items() if not np.isnan(joints).all())
+    assert len(tracked) >= 15, "the graph goes on tracking"
+    with open_bag(live) as reader:
+        refined = [body_from_msg(m).stamp_ns for _, _, m in reader.messages(["/artrack/refinement"])]
+    assert len(refined) == 1 and refined[0] in tracked[:2], "one refinement asked for (at the track's start), then none"
+    skeleton_log = (out / "logs" / "skeleton.log").read_text(errors="replace")
+    warnings = [line for line in skeleton_log.splitlines() if "refine_timeout_s" in line]
+    assert len(warnings) == 1, skeleton_log[-2000:]
+    assert "edge statistics from cam01, cam02, cam03, cam04" in warnings[0], warnings[0]
+    assert "refinement off" in warnings[0] and "blobs from" not in warnings[0], warnings[0]  # (the blob nodes answered)
+    edge_log = (out / "logs" / "edge_features_cam01.log").read_text(errors="replace")
+    assert sum("not measured again" in line for line in edge_log.splitlines()) == 1, edge_log[-2000:]
+
+
 @pytest.fixture(scope="module")
 def one_camera_scene(tmp_path_factory, env) -> Path:
     """The small scene seen by one camera (cam01 of the ring)."""

@@ -12,7 +12,8 @@ In lockstep mode every image after the first waits for the prediction of its fra
 measured sends that frame round again (the skeleton's ``refine_passes`` and
 ``startup_refine_frames``): the node goes back to its state before the frame, a copy of which it
 keeps every frame, and measures the same image about that body, as blob_features labels it again
-(``ClosedLoopPipeline.step``).
+(``ClosedLoopPipeline.step``). Without it, such a body is logged once and left unanswered (the
+skeleton then switches refinement off after its ``refine_timeout_s``).
 """
 
 from __future__ import annotations
@@ -87,7 +88,9 @@ class EdgeFeaturesNode(Node):
         self.refine = bool(p["answer_refinements"]) and self.lockstep
         self.before = FrameBefore() if self.refine else None  # the frame last processed, its state before
         self.refined = 0  # passes measured again (diagnostics)
-        if self.refine:
+        self.told_no_refine = False  # a refinement came without answer_refinements (logged once)
+        self.last_stamp: int | None = None  # the frame last measured
+        if self.lockstep:
             self.create_subscription(f.cls("artrack_msgs/msg/TrackedBody"), REFINEMENT_TOPIC, self.on_refinement,
                                      RESULT_QOS)
         self.queue = FrameQueue(self, self.lockstep, float(p["fps"]), self.timeout_s, "prediction",
@@ -137,6 +140,10 @@ class EdgeFeaturesNode(Node):
         """The skeleton's body of a frame's previous pass: the frame last measured, measured again
         from the state before it about that body; the statistics go out with the frame's stamp."""
         ref = self._reference(msg, REFINEMENT_TOPIC)
+        if ref is not None and not self.refine and ref[0] == self.last_stamp and not self.told_no_refine:
+            self.get_logger().warning(f"refinement of frame {ref[0]}, the frame just measured: not measured again, "
+                                      "this node runs without answer_refinements in lockstep")
+            self.told_no_refine = True
         if ref is None or self.before is None or ref[0] != self.before.stamp or self.stage is None:
             return
         self.stage = self.before.again()
@@ -150,6 +157,7 @@ class EdgeFeaturesNode(Node):
             ref_stamp, (reference, status) = found if found is not None else (0, (None, None))
             if self.before is not None:  # (what a step never changes: the body model, the camera, the tunables)
                 self.before.keep(stamp, image, self.stage, [self.body, self.stage.camera, self.edge_config])
+            self.last_stamp = stamp
             if self._measure(stamp, image, reference, status, ref_stamp):
                 self.frames += 1
 

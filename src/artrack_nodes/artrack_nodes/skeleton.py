@@ -25,7 +25,8 @@ prediction are published. The same (lockstep) for the
 times each, as offline. A pass whose blobs have not all come after
 ``refine_timeout_s`` (a feature node restarted since the frame, or one run without
 ``answer_refinements``) is abandoned: the previous pass's body and prediction are published, and if no
-camera answered at all, refinement is switched off for the rest of the run (one warning line).
+camera's node of a kind (blob_features, or with edges edge_features) answered at all, refinement is
+switched off for the rest of the run (one warning line).
 """
 
 from __future__ import annotations
@@ -288,22 +289,24 @@ class SkeletonNode(Node):
     def _abandon_refinement(self, now: float) -> None:
         """The refinement pass awaited has not got every camera's blobs (and, with edges, edge
         statistics) within refine_timeout_s: the previous pass stands (its body and prediction are
-        published); refinement is switched off if no feature node answered at all (they do not label
-        or measure a frame again)."""
+        published). Refinement is switched off if no node of a kind (blob_features, or with edges
+        edge_features) answered at all: they do not label or measure a frame again, and every later
+        refinement would wait as long. Some cameras answering: a node restarted since the frame,
+        and only this frame's refinement is given up."""
         asked, stamp = self.refine_fallback[0], self.refining[0]
         blobs = set(self.pending.pop(stamp, {}))
         edges = set(self.pending_edges.pop(stamp, {}))
         self.first_seen.pop(stamp, None)
-        answered = bool(blobs or edges)
         awaited = [("blobs", blobs)] + ([("edge statistics", edges)] if self.edges else [])
         missing = [f"{what} from {', '.join(sorted(set(self.names) - got))}"
                    for what, got in awaited if set(self.names) - got]
-        what = "refinement off" if not answered else "this frame's refinement given up"
+        silent = [what for what, got in awaited if not got]
+        what = "refinement off" if silent else "this frame's refinement given up"
         self.get_logger().warning(
             f"frame {stamp}: no refinement {'; no '.join(missing)} after {now - asked:.1f} s "
             f"(refine_timeout_s): the previous pass is published, {what}"
-            + ("; do the feature nodes run in lockstep with answer_refinements?" if not answered else ""))
-        if not answered:
+            + ("; do the feature nodes run in lockstep with answer_refinements?" if silent else ""))
+        if silent:
             self.config.refine_passes = self.config.startup_refine_frames = 0
         self._previous_pass_stands(stamp)
 
