@@ -29,6 +29,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
+from .config import parse_yaml
 from .errors import BodyModelError
 from .lie import cross, left_jacobian_so3, skew
 from .types import Blob3D
@@ -458,7 +459,7 @@ def _read_model_yaml(path: Path, chain: tuple[str, ...]) -> Any:
     except OSError as exc:
         raise BodyModelError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     try:
-        data = yaml.safe_load(text)
+        data = parse_yaml(text)
     except yaml.YAMLError as exc:
         raise BodyModelError(f"{path}: not valid YAML ({exc})") from exc
     if not isinstance(data, dict) or "extends" not in data:

@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 import yaml
 
+from .config import parse_yaml
 from .errors import CalibrationError
 
 try:
@@ -400,7 +401,7 @@ def _make_camera(where: str, what: str, **kw: Any) -> Camera:
 
 def _load_yaml(p: Path, where: str) -> list[Camera]:
     try:
-        data = yaml.safe_load(p.read_text())
+        data = parse_yaml(p.read_text())
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise CalibrationError(f"{where}: not valid YAML ({first})") from None

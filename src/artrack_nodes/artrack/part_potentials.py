@@ -34,6 +34,7 @@ from scipy.special import logsumexp
 
 from .body_model import BodyModel
 from .body_parts import PART_NAMES, SPATIAL_EDGES, PartGeometry, parts_from_theta
+from .config import parse_yaml
 from .errors import InputError
 
 MODEL_VERSION = 1
@@ -251,7 +252,7 @@ def load_model(path: str | os.PathLike | None = None) -> LooseLimbedModel:
     """Read a model YAML; InputError naming the file and field when it is malformed or of another version."""
     path = Path(path) if path is not None else default_model_path()
     try:
-        data = yaml.safe_load(path.read_text())
+        data = parse_yaml(path.read_text())
     except OSError as exc:
         raise InputError(f"{path}: cannot read the loose-limbed model ({exc.strerror})") from exc
     except yaml.YAMLError as exc:
