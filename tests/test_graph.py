@@ -21,6 +21,9 @@ from artrack.messages import blobs_from_msg, body_from_msg
 
 pytestmark = pytest.mark.graph
 FRAMES = 75  # conftest.small_scene: 2.5 s at 30 fps
+# Launches that compare the skeleton's bodies only leave the body_publisher out (one process less to start;
+# the default graph_run and tests/test_ros_user.py run it)
+NO_REP155 = "rep155=false"
 
 
 def _launch(out: Path, scene: Path, env, *sets: str, timeout_s: int = 240, graph: str = "config/graph.yaml") -> Path:
@@ -76,7 +79,7 @@ def test_graph_with_refinement_equals_offline_track_with_refinement(tmp_path_fac
     blob_features nodes, which label the frame again from their state before it): with every tracked
     frame refined twice (``refine_min_interval_s`` 0) the graph equals `artrack track --refine-passes 2`,
     and both differ from the plain loop."""
-    live = _launch(tmp_path_factory.mktemp("graph_refine"), small_scene, env, "refine_passes=2",
+    live = _launch(tmp_path_factory.mktemp("graph_refine"), small_scene, env, NO_REP155, "refine_passes=2",
                    "refine_min_interval_s=0.0")
     run_artrack(env, "track", str(small_scene), "--refine-passes", "2", "--refine-min-interval", "0",
                 "--out", str(tmp_path / "offline"), "--quiet")
@@ -105,7 +108,7 @@ def test_refinement_unanswered_by_the_blob_nodes_is_given_up(tmp_path_factory, s
             node["parameters"]["refine_timeout_s"] = 1.0
     path = out / "graph.yaml"
     path.write_text(yaml.safe_dump(graph))
-    live = _launch(out, small_scene, env, "refine_passes=2", "refine_min_interval_s=0.0", graph=str(path))
+    live = _launch(out, small_scene, env, NO_REP155, "refine_passes=2", "refine_min_interval_s=0.0", graph=str(path))
     run_artrack(env, "track", str(small_scene), "--startup-refine-frames", "0", "--out", str(tmp_path / "offline"),
                 "--quiet")
     plain, tracked = _assert_same_bodies(live, tmp_path / "offline" / "track", "unanswered refinement")
@@ -178,11 +181,12 @@ def edge_config(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def graph_run_edges(tmp_path_factory, env, small_scene, edge_config) -> Path:
-    return _launch(tmp_path_factory.mktemp("graph_edges"), small_scene, env, "edges=true",
+    return _launch(tmp_path_factory.mktemp("graph_edges"), small_scene, env, NO_REP155, "edges=true",
                    f"edge_config={edge_config}", timeout_s=300)
 
 
-def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small_scene, env, tmp_path, edge_config):
+def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small_scene, env, tmp_path, edge_config,
+                                                          graph_run):
     """edge_features nodes (one per camera) measure about the prediction; the skeleton fuses their
     statistics with the blobs: the same joints as `artrack track --edges`, and different from
     blobs alone (the edges are really used, after their warm-up). The start-up refinement runs with
@@ -190,9 +194,8 @@ def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small
     its frame from every camera's edge_features node, as offline."""
     run_artrack(env, "track", str(small_scene), "--edges", "--edge-config", str(edge_config),
                 "--out", str(tmp_path / "offline"), "--quiet")
-    run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "blobs"), "--quiet")
     offline, tracked = _assert_same_bodies(graph_run_edges, tmp_path / "offline" / "track", "with edges")
-    blobs_only = _bodies(tmp_path / "blobs" / "track")
+    blobs_only = _bodies(graph_run)  # (= `artrack track` without edges: test_graph_equals_offline_track)
     assert max(float(np.nanmax(np.abs(blobs_only[s] - offline[s]))) for s in tracked) > 1e-3
     with open_bag(graph_run_edges) as reader:
         counts = {}
@@ -219,7 +222,8 @@ def test_refinement_unanswered_by_the_edge_nodes_switches_it_off(tmp_path_factor
             node["parameters"]["refine_timeout_s"] = 1.0
     path = out / "graph.yaml"
     path.write_text(yaml.safe_dump(graph))
-    live = _launch(out, small_scene, env, "edges=true", f"edge_config={edge_config}", graph=str(path), timeout_s=300)
+    live = _launch(out, small_scene, env, NO_REP155, "edges=true", f"edge_config={edge_config}", graph=str(path),
+                   timeout_s=300)
     bodies = _bodies(live)
     assert len(bodies) == FRAMES, "every frame gets one body"
     tracked = sorted(s for s, joints in bodies.items() if not np.isnan(joints).all())
@@ -249,7 +253,7 @@ def test_graph_with_one_camera_equals_offline_track(one_camera_scene, env, tmp_p
     """A graph of one camera (one blob_features node): the skeleton node starts from that view alone
     and tracks (config/skeleton.yaml few_cameras, applied because it knows one camera), with the same
     joints as `artrack track` on the same bag."""
-    rec = _launch(tmp_path, one_camera_scene, env, "cameras=[cam01]")
+    rec = _launch(tmp_path, one_camera_scene, env, NO_REP155, "cameras=[cam01]")
     run_artrack(env, "track", str(one_camera_scene), "--out", str(tmp_path / "offline"), "--quiet")
     _assert_same_bodies(rec, tmp_path / "offline" / "track", "one camera")
 
@@ -263,7 +267,7 @@ def test_graph_with_full_dynamics_equals_offline_track(small_scene, env, tmp_pat
     cfg["kinematic"]["warmup_frames"] = 5
     path = tmp_path / "skeleton.yaml"
     path.write_text(yaml.safe_dump(cfg))
-    rec = _launch(tmp_path, small_scene, env, "estimator=dynamic", f"skeleton_config={path}")
+    rec = _launch(tmp_path, small_scene, env, NO_REP155, "estimator=dynamic", f"skeleton_config={path}")
     run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "offline"), "--estimator", "dynamic",
                 "--skeleton-config", str(path), "--quiet")
     _assert_same_bodies(rec, tmp_path / "offline" / "track", "full dynamics")
