@@ -164,7 +164,7 @@ def test_particle_tracker_beside_the_skeleton_in_the_launched_graph(env, tmp_pat
     rec = tmp_path / "graph"
     proc = subprocess.run(
         [str(NODE_BIN / "artrack"), "launch", "config/graph.yaml", "--set", f"bag={scene}", "--set", f"out={rec}",
-         "--set", "cameras=[rgbd]", "--set", "fps=15.0", "--set", "particles=true",
+         "--set", "cameras=[rgbd]", "--set", "fps=15.0", "--set", "particles=true", "--set", "rep155=false",
          "--set", "player_extra_topics=[/cameras/rgbd/points, /artrack/stick]", "--set", "player_linger_s=200.0",
          "--set", "player_linger_for=[/artrack/particles/body]",
          "--log-dir", str(tmp_path / "logs"), "--timeout", "240"],
