@@ -92,6 +92,20 @@ def test_graph_with_refinement_equals_offline_track_with_refinement(tmp_path_fac
     assert sorted(refined) == sorted(2 * tracked), "every tracked frame goes round twice more"
 
 
+def _silent_graph(out: Path, feature_node: str) -> Path:
+    """config/graph.yaml with ``feature_node`` (e.g. ``blob_features_{camera}``) run without
+    ``answer_refinements`` and the skeleton's ``refine_timeout_s`` at 1 s, written to ``out``."""
+    graph = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
+    for node in graph["nodes"]:
+        if node["name"] == feature_node:
+            node["parameters"]["answer_refinements"] = False
+        if node["name"] == "skeleton":
+            node["parameters"]["refine_timeout_s"] = 1.0
+    path = out / "graph.yaml"
+    path.write_text(yaml.safe_dump(graph))
+    return path
+
+
 def test_refinement_unanswered_by_the_blob_nodes_is_given_up(tmp_path_factory, small_scene, env, tmp_path):
     """The skeleton refines but the blob_features nodes do not answer (``answer_refinements`` false,
     as a node restarted since the frame would not): they log that they do not label the frame again,
@@ -100,14 +114,7 @@ def test_refinement_unanswered_by_the_blob_nodes_is_given_up(tmp_path_factory, s
     refinement (before: no body for that frame, and each later frame waited for the player's 30-s
     timeout)."""
     out = tmp_path_factory.mktemp("graph_refine_unanswered")
-    graph = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
-    for node in graph["nodes"]:
-        if node["name"] == "blob_features_{camera}":
-            node["parameters"]["answer_refinements"] = False
-        if node["name"] == "skeleton":
-            node["parameters"]["refine_timeout_s"] = 1.0
-    path = out / "graph.yaml"
-    path.write_text(yaml.safe_dump(graph))
+    path = _silent_graph(out, "blob_features_{camera}")
     live = _launch(out, small_scene, env, NO_REP155, "refine_passes=2", "refine_min_interval_s=0.0", graph=str(path))
     run_artrack(env, "track", str(small_scene), "--startup-refine-frames", "0", "--out", str(tmp_path / "offline"),
                 "--quiet")
@@ -214,14 +221,7 @@ def test_refinement_unanswered_by_the_edge_nodes_switches_it_off(tmp_path_factor
     the later start-up frames do not each wait as long (before, each of the 10 was asked for and given
     up in turn); every frame gets one body, and an edge node says once that it does not measure again."""
     out = tmp_path_factory.mktemp("graph_refine_edges_unanswered")
-    graph = yaml.safe_load((REPO / "config" / "graph.yaml").read_text())
-    for node in graph["nodes"]:
-        if node["name"] == "edge_features_{camera}":
-            node["parameters"]["answer_refinements"] = False
-        if node["name"] == "skeleton":
-            node["parameters"]["refine_timeout_s"] = 1.0
-    path = out / "graph.yaml"
-    path.write_text(yaml.safe_dump(graph))
+    path = _silent_graph(out, "edge_features_{camera}")
     live = _launch(out, small_scene, env, NO_REP155, "edges=true", f"edge_config={edge_config}", graph=str(path),
                    timeout_s=300)
     bodies = _bodies(live)
