@@ -154,6 +154,13 @@ CASES = [
          ["{I}/body_badparent.yaml", "link 'l_hand'", "parent 'l_arm'"]),
     Case("config-not-text", ["track", "{I}/good.mcap", "--blob-config", "{I}/binary.yaml", "--out", "{O}/out"],
          ["{I}/binary.yaml", "not a text file"]),
+    # YAML syntax errors: one line with what is wrong and where (str(yaml error) spans several lines)
+    Case("body-not-yaml", ["track", "{I}/good.mcap", "--body-model", "{O}/body.yaml", "--out", "{O}/out"],
+         ["{O}/body.yaml", "not valid YAML", "at line 3"], setup={"body.yaml": "links: [\n  {name: a, joint: free\n"}),
+    Case("config-not-yaml", ["track", "{I}/good.mcap", "--skeleton-config", "{O}/skeleton.yaml", "--out", "{O}/out"],
+         ["{O}/skeleton.yaml", "not valid YAML", "at line 3"], setup={"skeleton.yaml": "fit:\n  a: [1, 2\n"}),
+    Case("calib-not-yaml", ["track", "--videos", "{I}/a.mp4", "--calib", "{O}/rig.yaml", "--out", "{O}/out"],
+         ["{O}/rig.yaml", "not valid YAML", "at line 3"], setup={"rig.yaml": "cameras:\n  - {name: a\n"}),
     Case("config-is-a-directory", ["track", "{I}/good.mcap", "--skeleton-config", "{I}/brokenmeta",
                                    "--out", "{O}/out"], ["{I}/brokenmeta", "is a directory"]),
     # ---- 6. synth output / arguments, eval predictions

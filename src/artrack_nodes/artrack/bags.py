@@ -71,6 +71,7 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from rosbags.typesys.store import Typestore
 
 from .cameras import Camera
+from .config import yaml_error_text
 from .errors import BagError, CalibrationError, InputError, check_output_path
 
 __all__ = [
@@ -776,9 +777,7 @@ def _check_metadata(meta: Path) -> None:
     except UnicodeDecodeError:
         raise BagError(f"{meta}: not a text file") from None
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise BagError(f"{meta}: not valid YAML ({getattr(exc, 'problem', None) or 'syntax error'}{where})") from None
+        raise BagError(f"{meta}: not valid YAML ({yaml_error_text(exc)})") from None
     top = "rosbag2_bagfile_information"
     info = data.get(top) if isinstance(data, dict) else None
     if not isinstance(info, dict):

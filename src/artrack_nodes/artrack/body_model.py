@@ -29,7 +29,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from .config import parse_yaml
+from .config import parse_yaml, yaml_error_text
 from .errors import BodyModelError
 from .lie import cross, left_jacobian_so3, skew
 from .types import Blob3D
@@ -461,7 +461,7 @@ def _read_model_yaml(path: Path, chain: tuple[str, ...]) -> Any:
     try:
         data = parse_yaml(text)
     except yaml.YAMLError as exc:
-        raise BodyModelError(f"{path}: not valid YAML ({exc})") from exc
+        raise BodyModelError(f"{path}: not valid YAML ({yaml_error_text(exc)})") from exc
     if not isinstance(data, dict) or "extends" not in data:
         if isinstance(data, dict) and "link_overrides" in data:
             raise BodyModelError(f"{path}: field 'link_overrides' needs 'extends' (the body model it changes)")

@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 import yaml
 
-from .config import parse_yaml
+from .config import parse_yaml, yaml_error_text
 from .errors import CalibrationError
 
 try:
@@ -402,9 +402,10 @@ def _make_camera(where: str, what: str, **kw: Any) -> Camera:
 def _load_yaml(p: Path, where: str) -> list[Camera]:
     try:
         data = parse_yaml(p.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise CalibrationError(f"{where}: not valid YAML ({first})") from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{where}: not valid YAML (not a text file, not UTF-8)") from None
+    except yaml.YAMLError as exc:
+        raise CalibrationError(f"{where}: not valid YAML ({yaml_error_text(exc)})") from None
     if not isinstance(data, dict):
         raise CalibrationError(f"{where}: expected a mapping with 'cameras' or 'image_width' at top level")
     if "cameras" in data:

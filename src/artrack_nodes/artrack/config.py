@@ -23,6 +23,15 @@ def parse_yaml(text: str) -> Any:
     return yaml.load(text, Loader=_SAFE_LOADER)  # noqa: S506 (a safe loader)
 
 
+def yaml_error_text(exc: yaml.YAMLError) -> str:
+    """One line for a YAML syntax error: what is wrong and where, e.g. "did not find expected ','
+    or '}' at line 3, column 1" (str(exc) spans several lines and names no file)."""
+    mark = getattr(exc, "problem_mark", None)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    what = " ".join(str(getattr(exc, "problem", None) or type(exc).__name__).split())
+    return what + where
+
+
 def config_dir() -> Path:
     """The config/ folder: $ARTRACK_CONFIG_DIR, the source tree's, or the installed share/ copy."""
     env = os.environ.get("ARTRACK_CONFIG_DIR")
@@ -55,7 +64,7 @@ def read_yaml(path: str | os.PathLike) -> dict[str, Any]:
     except UnicodeDecodeError:
         raise InputError(f"{p}: not a text file (not UTF-8)") from None
     except yaml.YAMLError as exc:
-        raise InputError(f"{p}: not valid YAML ({exc.__class__.__name__})") from None
+        raise InputError(f"{p}: not valid YAML ({yaml_error_text(exc)})") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

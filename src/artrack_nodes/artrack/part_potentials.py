@@ -34,7 +34,7 @@ from scipy.special import logsumexp
 
 from .body_model import BodyModel
 from .body_parts import PART_NAMES, SPATIAL_EDGES, PartGeometry, parts_from_theta
-from .config import parse_yaml
+from .config import parse_yaml, yaml_error_text
 from .errors import InputError
 
 MODEL_VERSION = 1
@@ -256,7 +256,7 @@ def load_model(path: str | os.PathLike | None = None) -> LooseLimbedModel:
     except OSError as exc:
         raise InputError(f"{path}: cannot read the loose-limbed model ({exc.strerror})") from exc
     except yaml.YAMLError as exc:
-        raise InputError(f"{path}: not valid YAML") from exc
+        raise InputError(f"{path}: not valid YAML ({yaml_error_text(exc)})") from exc
     if not isinstance(data, dict) or data.get("version") != MODEL_VERSION:
         got = data.get("version") if isinstance(data, dict) else None
         raise InputError(f"{path}: field 'version' must be {MODEL_VERSION}, got {got!r}")
