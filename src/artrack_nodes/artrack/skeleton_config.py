@@ -36,14 +36,15 @@ class MeasurementConfig:
     #: a 3-D blob of three or more views whose weighted reprojection error is above this is solved again
     #: without the view that disagrees (:func:`artrack.triangulation._drop_outlier_views`; 0 = off) ...
     view_outlier_chi2: float = 4.0
-    #: ... once a track is this many frames old (:meth:`_Estimator._view_outlier_threshold`; 0 = always)
+    #: ... once a track is this many frames old
+    #: (:meth:`artrack.skeleton._Estimator._view_outlier_threshold`; 0 = always)
     view_outlier_after_frames: int = 40
     #: a view's blob of n pixels counts n / (n + n₀) in the triangulation, n₀ = this × the image
     #: area (:func:`artrack.triangulation.triangulate_blobs`; 0 = by its extent alone)
     small_blob_fraction: float = 3.90625e-4
     #: a view's 2-D blob of ``min_view_labels`` with fewer pixels than this × the camera's image area (a
     #: sliver) is left out of the triangulation where two or more views see the part with more pixels
-    #: (0 = off; :meth:`_Estimator._drop_small_views`)
+    #: (0 = off; :meth:`artrack.skeleton._Estimator._drop_small_views`)
     min_view_fraction: float = 1.953125e-4
     #: the blob labels ``min_view_fraction`` applies to
     min_view_labels: list = field(default_factory=lambda: ["head", "l_hand", "r_hand"])
@@ -52,11 +53,11 @@ class MeasurementConfig:
     min_view_ray_angle_deg: float = 45.0
     #: a 3-D blob seen by one view only takes its depth along that view's ray from the prior it was
     #: triangulated with (the prediction); the body fits count it across the ray only, and this sigma
-    #: (m) along it (:meth:`_Estimator._blob_targets`); 0 = as triangulated (the prediction's depth)
+    #: (m) along it (:meth:`artrack.skeleton._Estimator._blob_targets`); 0 = as triangulated (the prediction's depth)
     one_view_depth_sigma_m: float = 0.0
     #: negative evidence (:mod:`artrack.hidden`): a part of these labels found by one view only takes
     #: its prior's depth along that ray where the views that looked for it and did not find it would
-    #: not have seen it (:meth:`_Estimator._hidden_priors`; [] = off)
+    #: not have seen it (:meth:`artrack.skeleton._Estimator._hidden_priors`; [] = off)
     hidden_labels: list = field(default_factory=lambda: ["l_hand", "r_hand"])
     #: ... searched over the prediction's ± this many standard deviations
     hidden_sigmas: float = 3.0
@@ -66,7 +67,8 @@ class MeasurementConfig:
     #: ... a point nearer the image border than this (px) counts as not seen by that view
     hidden_inset_px: float = 0.0
     #: a part of ``hidden_labels`` that no view found is measured, to this sigma (m), at the likeliest
-    #: point given that the views which looked did not find it (:meth:`_Estimator._hidden_observations`;
+    #: point given that the views which looked did not find it
+    #: (:meth:`artrack.skeleton._Estimator._hidden_observations`;
     #: 0 = off; only beside ``tracking.min_blobs`` real 3-D blobs, and never counted as seen)
     hidden_no_view_sigma_m: float = 0.1
 
@@ -80,13 +82,13 @@ class TrackingConfig:
     #: a LOST estimator re-initialises from its own blobs (False: only ``reseed`` restarts it, e.g. from
     #: the loose_limbed node; the first start still uses the blobs)
     relocalise_from_blobs: bool = True
-    #: a re-seed (:meth:`_Estimator.reseed`) from another estimator's body holds its elbows, wrists,
+    #: a re-seed (:meth:`artrack.skeleton._Estimator.reseed`) from another estimator's body holds its elbows, wrists,
     #: knees and ankles only this loosely, m (its trunk and head at the re-seed's sigma): the
     #: loose-limbed body's limbs are its weakest part, and the rest pose and the blobs do better
     reseed_limb_sigma_m: float = 1.0
     verify_frames: int = 20
     flip_cost_ratio: float = 0.5
-    #: the face check (:func:`facing_agreement`): over this many frames while tracking (0 = off) ...
+    #: the face check (:func:`artrack.startup.facing_agreement`): over this many frames while tracking (0 = off) ...
     facing_check_frames: int = 15
     #: ... a mean cosine below this between the estimated facing and the way the ``facing_label``
     #: blob's sizes point turns the body round (heading + π, left <-> right)
@@ -105,7 +107,7 @@ class TrackingConfig:
     #: turned to (a heading that drifted round while the group's own labels stayed right), exchanged
     #: otherwise; other sided parts are always exchanged; [] = every label exchanged
     facing_turn_groups: list = field(default_factory=lambda: [["hand"]])
-    #: parts re-acquired when lost (:meth:`_Estimator._reacquire`): a part of these without a 3-D blob
+    #: parts re-acquired when lost (:meth:`artrack.skeleton._Estimator._reacquire`): a part of these without a 3-D blob
     #: seen in two or more views takes the point where the views' unlabelled skin blobs meet ...
     reacquire_labels: list = field(default_factory=lambda: ["l_hand", "r_hand"])
     #: ... if that point lies farther than this from every other observed 3-D blob, m ...
@@ -113,7 +115,7 @@ class TrackingConfig:
     #: ... and within this many times the part's reach (the bone chain from its shoulder) of its shoulder
     reacquire_reach_margin: float = 1.1
     #: a re-acquired part's own dofs are fitted from the arm as it is and also with its hinges half
-    #: bent (:meth:`BaselineEstimator._reach_for`); False: from the arm as it is only
+    #: bent (:meth:`artrack.skeleton.BaselineEstimator._reach_for`); False: from the arm as it is only
     reacquire_bent_start: bool = True
     #: a 3-D blob of ``reacquire_labels`` triangulated (two or more views) farther than this many times the part's reach
     #: from its shoulder in the current pose is not used (the hand's label sits on something else:
@@ -157,10 +159,11 @@ class FitConfig:
     edge_sigma_px: float = 1.0
     edge_min_found: int = 8
     ground_sigma_m: float = 0.0
-    #: soft upright trunk (:class:`UprightSegment`): sigma of the thorax' horizontal offset from the pelvis, m; 0 = off
+    #: soft upright trunk (:class:`artrack.body_fit.UprightSegment`): sigma of the thorax' horizontal
+    #: offset from the pelvis, m; 0 = off
     upright_sigma_m: float = 0.0
-    #: soft upright head (:meth:`UprightSegment.link_axis`): sigma of the head joint's horizontal offset
-    #: from the neck pivot (the head link's origin), beyond the rest pose's, m; 0 = off
+    #: soft upright head (:meth:`artrack.body_fit.UprightSegment.link_axis`): sigma of the head
+    #: joint's horizontal offset from the neck pivot (the head link's origin), beyond the rest pose's, m; 0 = off
     upright_head_sigma_m: float = 0.03
     floor_z_m: float = 0.0
     axis_label: str = "torso"
@@ -258,24 +261,26 @@ class StartupConfig:
     heading_sigma_rad: float = 0.35
     min_hand_views: int = 3
     #: a start-up skin blob larger than this (m, the side of its area's square at the matched point's
-    #: depth, :func:`blob_size_m`) sees the point but does not locate it (:func:`match_skin_blobs`); 0 = off
+    #: depth, :func:`artrack.startup.blob_size_m`) sees the point but does not locate it
+    #: (:func:`artrack.startup.match_skin_blobs`); 0 = off
     max_skin_size_m: float = 0.32
     #: a start-up skin point whose extension to a further view took a blob that a better point other
     #: than the face, at least ``min_hand_separation_m`` away horizontally, already took (two hands
-    #: merged there) is kept, that view seeing it without locating it (:func:`match_skin_blobs`
+    #: merged there) is kept, that view seeing it without locating it (:func:`artrack.startup.match_skin_blobs`
     #: ``share_taken_views``); False = such a point is dropped
     share_taken_views: bool = True
     #: skin points farther apart than this horizontally (single linkage) are different people; with
     #: several, start-up starts on the fullest group (up to three points) whose highest point (the
-    #: face) is nearest ``start_xy`` (:func:`nearest_person`); 0 = off
+    #: face) is nearest ``start_xy`` (:func:`artrack.startup.nearest_person`); 0 = off
     person_gap_m: float = 1.0
     #: one view sees the person (one camera): start-up points placed at the depth where the foreground
     #: centroid's ray comes down to the rest pose's centroid height, held to their rays, and to this
-    #: sigma (m) along them (:func:`one_view_start_points`); 0 = no start-up from one view
+    #: sigma (m) along them (:func:`artrack.startup.one_view_start_points`); 0 = no start-up from one view
     one_view_depth_sigma_m: float = 0.3
-    #: the start-up heading is read from the face's 2-D blob sizes (:func:`facing_direction`, the face check's
-    #: cue: face in front, neck behind) when they say something, else from the face's offset from the
-    #: foreground centroid; False = always the offset
+    #: the start-up heading is read from the face's 2-D blob sizes
+    #: (:func:`artrack.startup.facing_direction`, the face check's cue: face in front, neck behind)
+    #: when they say something, else from the face's offset from the foreground centroid; False =
+    #: always the offset
     facing_from_sizes: bool = True
 
 
