@@ -2,7 +2,7 @@
 """Measure a colour class's start model (the blob tracker's ``colour_defaults``) from a recording.
 
 A colour class listed in ``colour_defaults`` (config/blob_features.yaml) starts from a configured
-Gaussian over the pixel colour features (r, g, I) (``artrack.blobs.colour_features``: chroma
+Gaussian over the pixel colour features (r, g, I) (``artrack.colour_model.colour_features``: chroma
 r = R/S, g = G/S, intensity I = S/765) instead of being bootstrapped from its labels' first prior
 cores. config/pose2sim_demo.yaml configures two for the Pose2Sim man: the cyan cap ('hair') and the
 black shorts ('trousers'). This script reproduces those measurements, for that recording or another:
@@ -39,7 +39,7 @@ from collections.abc import Mapping, Sequence  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from artrack.blobs import colour_features  # noqa: E402
+from artrack.colour_model import colour_features  # noqa: E402
 from artrack.errors import ArtrackError, InputError  # noqa: E402
 from artrack.silhouette import reference_foreground  # noqa: E402
 

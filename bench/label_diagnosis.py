@@ -51,8 +51,8 @@ import numpy as np  # noqa: E402
 from closed_loop import SCENES, scene_bag  # noqa: E402
 
 from artrack.bags import read_scene  # noqa: E402
-from artrack.blobs import colour_features  # noqa: E402
 from artrack.body_model import load_body_model  # noqa: E402
+from artrack.colour_model import colour_features  # noqa: E402
 from artrack.constraints import exp_so3  # noqa: E402
 from artrack.evaluation import label_confusion  # noqa: E402
 from artrack.motion import pose_at  # noqa: E402

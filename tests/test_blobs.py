@@ -10,7 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from artrack.blobs import FOREGROUND, SKIN, BlobTracker2D, BlobTrackerConfig, ColourModel, colour_features
+from artrack.blob_config import FOREGROUND, SKIN, BlobTrackerConfig
+from artrack.blobs import BlobTracker2D
+from artrack.colour_model import ColourModel, colour_features
 from artrack.config import load_dataclass_yaml
 from artrack.errors import InputError
 from artrack.types import BEHIND_CAMERA, OCCLUDED, Prior2D

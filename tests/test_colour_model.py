@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from artrack.blobs import colour_features
+from artrack.colour_model import colour_features
 
 BENCH = Path(__file__).resolve().parents[1] / "bench" / "colour_model.py"
 

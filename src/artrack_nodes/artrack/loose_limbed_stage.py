@@ -1,6 +1,6 @@
 """The loose_limbed node's frame step (ALGORITHMS.md §4 in the graph), ROS-free.
 
-Per camera a background model (``blobs.BackgroundModel``: the median of the
+Per camera a background model (``background.BackgroundModel``: the median of the
 first ``background_seed_frames`` sampled frames) turns images into the
 foreground/edge evidence of ``part_likelihood``; once every camera's
 background is seeded, each frame goes through the ``LooseLimbedTracker``
@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .blobs import BackgroundModel, BlobTrackerConfig
+from .background import BackgroundModel
+from .blob_config import BlobTrackerConfig
 from .body_model import BodyModel
 from .body_parts import part_geometry
 from .cameras import Camera
@@ -39,7 +40,7 @@ class StageConfig:
     n_particles: int = 100
     use_shouters: bool = True
     seed: int = 0
-    background_seed_frames: int = 11   #: frames in the background median (blobs.BlobTrackerConfig)
+    background_seed_frames: int = 11   #: frames in the background median (blob_config.BlobTrackerConfig)
     background_seed_stride: int = 4    #: one seed frame every this many frames
     #: no body when the estimate's mean part log-likelihood (LooseLimbedTracker.score) is below this (the
     #: tracker's lost_score: the next frame is found again from no prior pose); None: always a body.

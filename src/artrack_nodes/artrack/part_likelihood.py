@@ -17,7 +17,7 @@ facing the camera from one turned away (the whole body mirrored, left and right
 swapped, fits the same outline), but the face is skin and the back of the head
 is hair. A ring of points around the head at ``face_height`` is sampled; each
 one facing the camera should be skin (``skin`` map: the blob tracker's default
-skin colour model, ``blobs.skin_model``) where it is in front (within
+skin colour model, ``colour_model.skin_model``) where it is in front (within
 ``face_half_angle`` of the head's forward axis) and not skin where it is behind.
 Views are independent given the part:
 
@@ -39,9 +39,10 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .blobs import BlobTrackerConfig, colour_features, skin_model
+from .blob_config import BlobTrackerConfig
 from .body_parts import PartGeometry, cylinder_points
 from .cameras import Camera
+from .colour_model import colour_features, skin_model
 
 
 @dataclass
@@ -105,7 +106,7 @@ def view_evidence(camera: Camera, image_bgr: np.ndarray, background_bgr: np.ndar
 
 def skin_map(image_bgr: np.ndarray, blur_sigma_px: float = 0.0) -> np.ndarray:
     """(H, W) float32 in [0, 1]: exp(−½ d²) of every pixel's colour distance d to the default skin model
-    (``blobs.skin_model``; 0 where darker than its minimum intensity), optionally blurred."""
+    (``colour_model.skin_model``; 0 where darker than its minimum intensity), optionally blurred."""
     cfg = BlobTrackerConfig()
     d2 = skin_model(cfg).distance2(colour_features(image_bgr).reshape(-1, 3), cfg).reshape(image_bgr.shape[:2])
     skin = np.exp(-0.5 * np.minimum(d2, 50.0)).astype(np.float32)

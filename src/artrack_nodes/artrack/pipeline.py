@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from .blobs import BlobTracker2D, BlobTrackerConfig
+from .blob_config import BlobTrackerConfig
+from .blobs import BlobTracker2D
 from .body_model import BodyModel
 from .cameras import Camera
 from .edge_fusion import EdgeStage, LinkEdgeStatistics, combine
