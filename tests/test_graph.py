@@ -9,6 +9,7 @@ back into blob_features and being used.
 from __future__ import annotations
 
 import subprocess
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -41,9 +42,22 @@ def _launch(out: Path, scene: Path, env, *sets: str, timeout_s: int = 240, graph
     return rec
 
 
+def _launch_beside(out: Path, scene: Path, env, offline: list[str], *sets: str, **kw) -> Path:
+    """:func:`_launch`, with ``artrack track <offline> --out <out>/offline --quiet`` run beside it (the
+    lockstep graph leaves a core idle while one node works; a thread waits on each process).
+    Returns the recorded bag; the offline run's is ``<out>/offline/track``."""
+    with ThreadPoolExecutor(1) as pool:
+        job = pool.submit(run_artrack, env, "track", *offline, "--out", str(out / "offline"), "--quiet")
+        rec = _launch(out, scene, env, *sets, **kw)
+        job.result()
+    return rec
+
+
 @pytest.fixture(scope="module")
 def graph_run(tmp_path_factory, env, small_scene) -> Path:
-    return _launch(tmp_path_factory.mktemp("graph"), small_scene, env)
+    """The default graph on the small scene; beside it `artrack track` on the same bag
+    (``<graph_run>/../offline/track``)."""
+    return _launch_beside(tmp_path_factory.mktemp("graph"), small_scene, env, [str(small_scene)])
 
 
 def _bodies(bag: Path) -> dict[int, np.ndarray]:
@@ -68,22 +82,20 @@ def _assert_same_bodies(live_bag: Path, offline_bag: Path, what: str) -> tuple[d
     return offline, tracked
 
 
-def test_graph_equals_offline_track(graph_run, small_scene, env, tmp_path):
-    run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "offline"), "--quiet")
-    _assert_same_bodies(graph_run, tmp_path / "offline" / "track", "blobs")
+def test_graph_equals_offline_track(graph_run):
+    _assert_same_bodies(graph_run, graph_run.parent / "offline" / "track", "blobs")
 
 
-def test_graph_with_refinement_equals_offline_track_with_refinement(tmp_path_factory, small_scene, env, tmp_path,
-                                                                     graph_run):
+def test_graph_with_refinement_equals_offline_track_with_refinement(tmp_path_factory, small_scene, env, graph_run):
     """``refine_passes`` over DDS (skeleton -> /artrack/refinement -> feedback_projection -> the
     blob_features nodes, which label the frame again from their state before it): with every tracked
     frame refined twice (``refine_min_interval_s`` 0) the graph equals `artrack track --refine-passes 2`,
     and both differ from the plain loop."""
-    live = _launch(tmp_path_factory.mktemp("graph_refine"), small_scene, env, NO_REP155, "refine_passes=2",
-                   "refine_min_interval_s=0.0")
-    run_artrack(env, "track", str(small_scene), "--refine-passes", "2", "--refine-min-interval", "0",
-                "--out", str(tmp_path / "offline"), "--quiet")
-    offline, tracked = _assert_same_bodies(live, tmp_path / "offline" / "track", "refined")
+    out = tmp_path_factory.mktemp("graph_refine")
+    live = _launch_beside(out, small_scene, env,
+                          [str(small_scene), "--refine-passes", "2", "--refine-min-interval", "0"],
+                          NO_REP155, "refine_passes=2", "refine_min_interval_s=0.0")
+    offline, tracked = _assert_same_bodies(live, out / "offline" / "track", "refined")
     plain = _bodies(graph_run)  # (= the plain offline loop: test_graph_equals_offline_track)
     moved = max(float(np.nanmax(np.abs(plain[s] - offline[s]))) for s in tracked)
     assert moved > 1e-3, "the refined frames should differ from the plain loop's"
@@ -106,7 +118,7 @@ def _silent_graph(out: Path, feature_node: str) -> Path:
     return path
 
 
-def test_refinement_unanswered_by_the_blob_nodes_is_given_up(tmp_path_factory, small_scene, env, tmp_path):
+def test_refinement_unanswered_by_the_blob_nodes_is_given_up(tmp_path_factory, small_scene, env):
     """The skeleton refines but the blob_features nodes do not answer (``answer_refinements`` false,
     as a node restarted since the frame would not): they log that they do not label the frame again,
     the skeleton abandons that pass after its ``refine_timeout_s``, publishes the frame's first pass
@@ -115,10 +127,9 @@ def test_refinement_unanswered_by_the_blob_nodes_is_given_up(tmp_path_factory, s
     timeout)."""
     out = tmp_path_factory.mktemp("graph_refine_unanswered")
     path = _silent_graph(out, "blob_features_{camera}")
-    live = _launch(out, small_scene, env, NO_REP155, "refine_passes=2", "refine_min_interval_s=0.0", graph=str(path))
-    run_artrack(env, "track", str(small_scene), "--startup-refine-frames", "0", "--out", str(tmp_path / "offline"),
-                "--quiet")
-    plain, tracked = _assert_same_bodies(live, tmp_path / "offline" / "track", "unanswered refinement")
+    live = _launch_beside(out, small_scene, env, [str(small_scene), "--startup-refine-frames", "0"],
+                          NO_REP155, "refine_passes=2", "refine_min_interval_s=0.0", graph=str(path))
+    plain, tracked = _assert_same_bodies(live, out / "offline" / "track", "unanswered refinement")
     with open_bag(live) as reader:
         refined = [body_from_msg(m).stamp_ns for _, _, m in reader.messages(["/artrack/refinement"])]
     assert refined == [min(tracked)], "one refinement asked for (the first tracked frame's), then none"
@@ -188,20 +199,19 @@ def edge_config(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def graph_run_edges(tmp_path_factory, env, small_scene, edge_config) -> Path:
-    return _launch(tmp_path_factory.mktemp("graph_edges"), small_scene, env, NO_REP155, "edges=true",
-                   f"edge_config={edge_config}", timeout_s=300)
+    """The graph with edges; beside it `artrack track --edges` (``<graph_run_edges>/../offline/track``)."""
+    return _launch_beside(tmp_path_factory.mktemp("graph_edges"), small_scene, env,
+                          [str(small_scene), "--edges", "--edge-config", str(edge_config)],
+                          NO_REP155, "edges=true", f"edge_config={edge_config}", timeout_s=300)
 
 
-def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, small_scene, env, tmp_path, edge_config,
-                                                          graph_run):
+def test_graph_with_edges_equals_offline_track_with_edges(graph_run_edges, graph_run):
     """edge_features nodes (one per camera) measure about the prediction; the skeleton fuses their
     statistics with the blobs: the same joints as `artrack track --edges`, and different from
     blobs alone (the edges are really used, after their warm-up). The start-up refinement runs with
     the edges (stop 63): each refinement body on /artrack/refinement gets a second measurement of
     its frame from every camera's edge_features node, as offline."""
-    run_artrack(env, "track", str(small_scene), "--edges", "--edge-config", str(edge_config),
-                "--out", str(tmp_path / "offline"), "--quiet")
-    offline, tracked = _assert_same_bodies(graph_run_edges, tmp_path / "offline" / "track", "with edges")
+    offline, tracked = _assert_same_bodies(graph_run_edges, graph_run_edges.parent / "offline" / "track", "with edges")
     blobs_only = _bodies(graph_run)  # (= `artrack track` without edges: test_graph_equals_offline_track)
     assert max(float(np.nanmax(np.abs(blobs_only[s] - offline[s]))) for s in tracked) > 1e-3
     with open_bag(graph_run_edges) as reader:
@@ -253,8 +263,7 @@ def test_graph_with_one_camera_equals_offline_track(one_camera_scene, env, tmp_p
     """A graph of one camera (one blob_features node): the skeleton node starts from that view alone
     and tracks (config/skeleton.yaml few_cameras, applied because it knows one camera), with the same
     joints as `artrack track` on the same bag."""
-    rec = _launch(tmp_path, one_camera_scene, env, NO_REP155, "cameras=[cam01]")
-    run_artrack(env, "track", str(one_camera_scene), "--out", str(tmp_path / "offline"), "--quiet")
+    rec = _launch_beside(tmp_path, one_camera_scene, env, [str(one_camera_scene)], NO_REP155, "cameras=[cam01]")
     _assert_same_bodies(rec, tmp_path / "offline" / "track", "one camera")
 
 
@@ -267,7 +276,7 @@ def test_graph_with_full_dynamics_equals_offline_track(small_scene, env, tmp_pat
     cfg["kinematic"]["warmup_frames"] = 5
     path = tmp_path / "skeleton.yaml"
     path.write_text(yaml.safe_dump(cfg))
-    rec = _launch(tmp_path, small_scene, env, NO_REP155, "estimator=dynamic", f"skeleton_config={path}")
-    run_artrack(env, "track", str(small_scene), "--out", str(tmp_path / "offline"), "--estimator", "dynamic",
-                "--skeleton-config", str(path), "--quiet")
+    rec = _launch_beside(tmp_path, small_scene, env, [str(small_scene), "--estimator", "dynamic",
+                                                      "--skeleton-config", str(path)],
+                         NO_REP155, "estimator=dynamic", f"skeleton_config={path}")
     _assert_same_bodies(rec, tmp_path / "offline" / "track", "full dynamics")
