@@ -12,6 +12,11 @@
 # Usage: scripts/fetch_pose2sim.sh            (cache: ${ARTRACK_CACHE:-<repo>/.cache})
 # Result: $CACHE/pose2sim/Pose2Sim/Demo_{SinglePerson,MultiPerson}/{videos,calibration}
 set -euo pipefail
+if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then
+  sed -n '2,/^[^#]/{/^#/s/^# \{0,1\}//p}' "$0"  # the comment block above
+  exit 0
+fi
+if [ $# -gt 0 ]; then echo "fetch_pose2sim: unknown argument '$1' (see --help)" >&2; exit 2; fi
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 CACHE=${ARTRACK_CACHE:-$ROOT/.cache}
 VERSION=0.10.49

@@ -2,7 +2,14 @@
 # Idempotent set-up: .venv with pinned ROS 2 Jazzy wheels and the core
 # libraries, the fix of the wheels' CMake files, and the colcon build of the
 # workspace (ros2_ws/). Safe to run again: each step is skipped when done.
+#
+# Usage: bash scripts/setup.sh   (`make setup`; `make test` and `make demo` run it first)
 set -euo pipefail
+if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then
+  sed -n '2,/^[^#]/{/^#/s/^# \{0,1\}//p}' "$0"  # the comment block above
+  exit 0
+fi
+if [ $# -gt 0 ]; then echo "setup: unknown argument '$1' (see --help)" >&2; exit 2; fi
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 VENV=$ROOT/.venv

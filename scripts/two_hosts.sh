@@ -6,13 +6,17 @@
 # Blobs, priors and bodies cross the link over UDP (shared memory off: FASTDDS_BUILTIN_TRANSPORTS=UDPv4,
 # and not config/fastdds.xml, whose shared-memory transport would bypass the link).
 #
-#   ROS_DOMAIN_ID=63 bash scripts/two_hosts.sh BAG OUT [key=value ...]   (graph variables, as --set)
+# Usage: ROS_DOMAIN_ID=63 bash scripts/two_hosts.sh BAG OUT [key=value ...]   (graph variables, as --set)
 #
 # Needs CAP_NET_ADMIN (root; on this machine the session is root); exits 77 with one line when
 # network namespaces cannot be created. On real machines run the same two `artrack launch --only`
 # commands (below) on the two hosts with the same ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET.
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then
+  sed -n '2,/^[^#]/{/^#/s/^# \{0,1\}//p}' "$0"  # the comment block above
+  exit 0
+fi
 if [ $# -lt 2 ]; then echo "usage: ROS_DOMAIN_ID=N $0 BAG OUT [key=value ...]" >&2; exit 2; fi
 BAG=$(realpath "$1"); OUT=$(realpath -m "$2"); shift 2
 DOMAIN=${ROS_DOMAIN_ID:-63}
