@@ -184,6 +184,33 @@ def test_recorded_bag_readable_by_mcap(graph_run):
     assert counts[body_channel] == FRAMES
 
 
+def _frame_ids(msg, path: str = ""):
+    """(where, frame id) of every header in a message and in the messages of its arrays."""
+    if hasattr(getattr(msg, "header", None), "frame_id"):
+        yield path + "header", msg.header.frame_id
+    for name in getattr(msg, "__dataclass_fields__", {}):
+        value = getattr(msg, name)
+        if isinstance(value, list):
+            for i, item in enumerate(value):
+                if hasattr(item, "__dataclass_fields__"):
+                    yield from _frame_ids(item, f"{path}{name}[{i}].")
+
+
+def test_every_recorded_header_names_its_frame(graph_run):
+    """Frame ids on every header (REP 103 frames): the bodies, predictions, link poses and markers in
+    the world frame, each camera's blobs and priors in its optical frame."""
+    seen: dict[str, set[str]] = {}
+    with open_bag(graph_run) as reader:
+        for topic, _, msg in reader.messages():
+            for where, frame in _frame_ids(msg):
+                assert frame, f"{topic}: {where}.frame_id is empty"
+                seen.setdefault(topic, set()).add(frame)
+    assert {"/artrack/body", "/artrack/prediction", "/artrack/markers", "/cameras/cam01/blobs"} <= set(seen)
+    for topic, frames in seen.items():
+        camera = topic.split("/")[2] if topic.startswith("/cameras/") else None
+        assert frames == ({f"{camera}_optical_frame"} if camera else {"world"}), (topic, frames)
+
+
 @pytest.fixture(scope="module")
 def edge_config(tmp_path_factory) -> Path:
     """config/edge_features.yaml with a 5-frame warm-up: the small scene tracks ~20 frames, fewer
