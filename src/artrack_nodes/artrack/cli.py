@@ -66,6 +66,7 @@ def _parse_blackout(text: str, duration: float) -> tuple[float, float]:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
+    """`artrack synth`: render a synthetic scene with ground truth into a bag."""
     from .bags import write_scene_bag
     from .body_model import load_body_model
     from .synth import SceneConfig, generate_scene, scene_cameras
@@ -208,6 +209,7 @@ def _finish_track_out(tmp: Path, out: Path) -> None:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
+    """`artrack track`: the closed loop offline over a bag or videos (the graph's core, one process)."""
     for flag, value in (("--refine-passes", args.refine_passes), ("--refine-min-interval", args.refine_min_interval),
                         ("--startup-refine-frames", args.startup_refine_frames),
                         ("--startup-refine-passes", args.startup_refine_passes)):
@@ -349,6 +351,7 @@ def load_predictions(path: str):
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    """`artrack eval`: MPJPE of a tracking output against a bag's ground truth, and its error-over-time plot."""
     from .evaluation import evaluate, format_report, load_truth, plot_error_over_time
 
     truth = load_truth(args.truth)
@@ -371,6 +374,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_overlay(args: argparse.Namespace) -> int:
+    """`artrack overlay`: the projected skeleton and blobs drawn on a bag's images."""
     from .bags import read_scene
     from .overlay import render_overlay
 
@@ -385,6 +389,7 @@ def cmd_overlay(args: argparse.Namespace) -> int:
 
 
 def cmd_launch(args: argparse.Namespace) -> int:
+    """`artrack launch`: a graph file's nodes as processes (:mod:`artrack.launcher`)."""
     from .launcher import launch, parse_overrides
 
     return launch(args.graph, parse_overrides(args.set or []), timeout_s=args.timeout, log_dir=args.log_dir,
@@ -395,6 +400,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The `artrack` argument parser, one sub-command per ``cmd_*``."""
     ap = argparse.ArgumentParser(prog="artrack", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="command", required=True)
 
@@ -509,6 +515,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Entry point: a bad input (ArtrackError, or a file that cannot be read or written) is one line
+    on stderr and exit 1."""
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)

@@ -54,6 +54,8 @@ def config_path(name_or_path: str | os.PathLike | None, default_name: str) -> Pa
 
 
 def read_yaml(path: str | os.PathLike) -> dict[str, Any]:
+    """The top-level mapping of a YAML file ({} when empty); a missing, unreadable or invalid file, or a
+    top level that is not a mapping, is an InputError of one line naming the file."""
     p = Path(path)
     try:
         data = parse_yaml(p.read_text())
@@ -92,6 +94,8 @@ def dataclass_from_dict(cls: type[T], data: dict[str, Any], where: str) -> T:
 
 
 def load_dataclass_yaml(path: str | os.PathLike, cls: type[T], section: str | None = None) -> T:
+    """Dataclass ``cls`` from a YAML file (or its ``section`` mapping), every key checked
+    (:func:`dataclass_from_dict`)."""
     data = read_yaml(path)
     if section is not None:
         data = data.get(section, {}) or {}

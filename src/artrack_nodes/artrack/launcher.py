@@ -51,6 +51,9 @@ def find_executable(name: str) -> Path:
 
 @dataclass
 class NodeSpec:
+    """One node process of a graph: its name, executable, ROS parameters, how many times it is
+    restarted when it dies, and whether the graph ends when it exits (``until_exit``)."""
+
     name: str
     executable: str
     parameters: dict[str, Any] = field(default_factory=dict)

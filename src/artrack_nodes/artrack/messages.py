@@ -86,6 +86,7 @@ def ns_from_time(t: Any) -> int:
 
 
 def header_msg(f: MsgFactory, stamp_ns: int, frame_id: str) -> Any:
+    """std_msgs/Header with the stamp (integer ns) and frame id."""
     return f("std_msgs/msg/Header", stamp=time_msg(f, stamp_ns), frame_id=frame_id)
 
 
@@ -408,6 +409,8 @@ def camera_from_msgs(name: str, info: Any, extrinsics: Any | None) -> Camera:
 
 @dataclass(frozen=True)
 class ImageEncoding:
+    """A sensor_msgs/Image encoding: its channel count and the conversion to BGR (None: already BGR)."""
+
     channels: int
     to_bgr: Callable[[np.ndarray], np.ndarray] | None
 

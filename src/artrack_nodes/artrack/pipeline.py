@@ -125,6 +125,8 @@ class FrameClock:
         self.last_ns: int | None = None
 
     def next_stamp(self, stamp_ns: int) -> int:
+        """The stamp the frame after ``stamp_ns`` is expected at (ns): the last interval when plausible
+        (0 < dt < 10 frames), else 1/fps."""
         dt = self.default_dt_ns
         if self.last_ns is not None and 0 < stamp_ns - self.last_ns < 10 * self.default_dt_ns:
             dt = stamp_ns - self.last_ns
@@ -174,6 +176,8 @@ class SkeletonStage:
 
     def step(self, stamp_ns: int, blobs_by_camera: Mapping[str, list[Blob2D]],
              edges: LinkEdgeStatistics | None = None) -> tuple[BodyEstimate, BodyEstimate]:
+        """(the body at ``stamp_ns`` from every camera's blobs and the optional edge statistics,
+        the body predicted for the next frame)."""
         ordered = {name: blobs_by_camera[name] for name in sorted(blobs_by_camera)}
         estimate = self.estimator.update(stamp_ns, ordered, edges)
         t0 = time.perf_counter()
@@ -194,6 +198,7 @@ class ProjectionStage:
         self.centre_occlusion_labels = tuple(centre_occlusion_labels)
 
     def step(self, prediction: BodyEstimate) -> dict[str, list[Prior2D]]:
+        """{camera: the 2-D priors of the predicted body} (:func:`artrack.projection.project_priors`)."""
         return project_priors(prediction, self.cameras, self.body,
                               occlusion_surface_sigma=self.occlusion_surface_sigma,
                               centre_occlusion_labels=self.centre_occlusion_labels)
@@ -201,6 +206,10 @@ class ProjectionStage:
 
 @dataclass
 class FrameResult:
+    """What one frame's step gives: the 2-D blobs per camera, the body estimated at the frame and
+    predicted for the next, the priors used and those for the next frame, per-stage wall times (ms)
+    and the passes the frame took round the loop."""
+
     stamp_ns: int
     blobs: dict[str, list[Blob2D]]
     estimate: BodyEstimate
@@ -218,16 +227,20 @@ class WireRoundTrip:
         self.f = rosbags_factory()
 
     def blobs(self, stamp_ns: int, camera: str, blobs: list[Blob2D]) -> list[Blob2D]:
+        """The blobs as the skeleton node receives them (BlobArray and back)."""
         return blobs_from_msg(blob_array_msg(self.f, stamp_ns, camera, camera, blobs))[2]
 
     def priors(self, camera: str, priors: list[Prior2D], stamp_ns: int) -> list[Prior2D]:
+        """The priors as a blob_features node receives them (PriorArray and back)."""
         return priors_from_msg(prior_array_msg(self.f, stamp_ns, camera, camera, priors))[2]
 
     def body(self, body: BodyEstimate) -> BodyEstimate:
+        """The body as feedback_projection and the edge nodes receive it (TrackedBody and back)."""
         return body_from_msg(body_msg(self.f, body))
 
     def edges(self, stamp_ns: int, camera: str, link_names: list[str], stats: LinkEdgeStatistics | None,
               reference_stamp_ns: int) -> LinkEdgeStatistics | None:
+        """The edge statistics as the skeleton node receives them (EdgeStatistics and back)."""
         msg = edge_stats_msg(self.f, stamp_ns, camera, camera, link_names, stats, reference_stamp_ns)
         return edge_stats_from_msg(msg, link_names)[2]
 

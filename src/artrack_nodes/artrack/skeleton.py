@@ -1323,6 +1323,7 @@ class BaselineEstimator(_Estimator):
     kind = "baseline"
 
     def reset(self) -> None:
+        """As :meth:`_Estimator.reset`, with the frame's axis cue and the dof velocities."""
         super().reset()
         self._axis: tuple[np.ndarray, np.ndarray] | None = None  # this frame's horizontal-axis cue
         self._dof_velocity: np.ndarray | None = None  # smoothed d theta / dt (joint dofs, root position)
@@ -1592,6 +1593,7 @@ class KinematicEstimator(_Estimator):
 
     # -- the raw tracker beside the filters (kinematic.fit_source: baseline) -----------
     def reset(self) -> None:
+        """As :meth:`_Estimator.reset`, the filters' count and the raw tracker too."""
         super().reset()
         self._filter_frames = 0  # filter updates since the last (re)initialisation
         #: stamps (ns) at which the filters were re-initialised at the raw tracker's new track
@@ -1627,6 +1629,7 @@ class KinematicEstimator(_Estimator):
         return self.raw.predict(stamp_ns) if self._raw_leads() else super().predict(stamp_ns)
 
     def reseed(self, stamp_ns, joints, sigma_m=0.05, limb_sigma_m=None):
+        """As :meth:`_Estimator.reseed`, the raw tracker re-seeded first."""
         if self.raw is not None:
             self.raw.reseed(stamp_ns, joints, sigma_m, limb_sigma_m)
         return super().reseed(stamp_ns, joints, sigma_m, limb_sigma_m)

@@ -60,6 +60,8 @@ HOUSEKEEPING_S = 0.1
 
 
 class BagPlayerNode(Node):
+    """The bag_player node (module docstring): a recording's camera topics published frame by frame."""
+
     def __init__(self):
         super().__init__("bag_player")
         p = declare_all(self, PARAMS, LIMITS, {k: (lambda v: None) for k in RUNTIME})

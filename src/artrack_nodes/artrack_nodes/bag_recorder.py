@@ -31,6 +31,8 @@ def _msg_class(type_name: str):
 
 
 class BagRecorderNode(Node):
+    """The bag_recorder node (module docstring): matching topics written, serialized, to a .mcap."""
+
     def __init__(self):
         super().__init__("bag_recorder")
         p = declare_all(self, PARAMS, runtime={})  # all read-only once running

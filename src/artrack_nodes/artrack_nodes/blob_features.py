@@ -57,6 +57,8 @@ RUNTIME = ("feedback", "prior_timeout_s")
 
 
 class BlobFeaturesNode(Node):
+    """The blob_features node (module docstring): one camera's images and priors in, its 2-D blobs out."""
+
     def __init__(self):
         super().__init__("blob_features")
         p = declare_all(self, PARAMS, LIMITS, {"feedback": lambda v: setattr(self.stage, "feedback", bool(v)),

@@ -69,6 +69,8 @@ POSES_TOPIC = "/artrack/link_poses"
 
 
 class BodyPublisherNode(Node):
+    """The body_publisher node (module docstring): the tracked body as REP 155 TF, joint states and markers."""
+
     def __init__(self):
         super().__init__("body_publisher")
         self.p = declare_all(self, PARAMS, LIMITS, {k: (lambda v, k=k: self._set(k, v)) for k in RUNTIME})

@@ -32,6 +32,8 @@ PARAMS = [
 
 
 class CameraIngestNode(Node):
+    """The camera_ingest node (module docstring): videos, a device or a bag into camera topics."""
+
     def __init__(self):
         super().__init__("camera_ingest")
         p = declare_all(self, PARAMS)

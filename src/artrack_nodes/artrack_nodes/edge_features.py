@@ -66,6 +66,8 @@ RUNTIME = ("prediction_timeout_s",)
 
 
 class EdgeFeaturesNode(Node):
+    """The edge_features node (module docstring): one camera's edge statistics about the predicted body."""
+
     def __init__(self):
         super().__init__("edge_features")
         p = declare_all(self, PARAMS, LIMITS,

@@ -45,6 +45,8 @@ LIMITS = {"occlusion_surface_sigma": (0.0, 10.0)}
 
 
 class FeedbackProjectionNode(Node):
+    """The feedback_projection node (module docstring): the predicted body's blobs as 2-D priors per camera."""
+
     def __init__(self):
         super().__init__("feedback_projection")
         p = declare_all(self, PARAMS, LIMITS, runtime={})  # all read-only once running

@@ -82,6 +82,8 @@ RUNTIME: tuple[str, ...] = ()  # all read-only once running
 
 
 class LooseLimbedNode(Node):
+    """The loose_limbed node (module docstring): the loose-limbed body from every camera's images."""
+
     def __init__(self):
         super().__init__("loose_limbed")
         p = declare_all(self, PARAMS, LIMITS, runtime={})

@@ -35,6 +35,8 @@ RUNTIME: tuple[str, ...] = ()  # all read-only once running
 
 
 class ObjectFeaturesNode(Node):
+    """The object_features node (module docstring): the held stick's 2-D image in one camera."""
+
     def __init__(self):
         super().__init__("object_features")
         p = declare_all(self, PARAMS, LIMITS, runtime={})

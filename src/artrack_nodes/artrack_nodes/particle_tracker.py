@@ -75,6 +75,8 @@ RUNTIME: tuple[str, ...] = ()  # all read-only once running
 
 
 class ParticleTrackerNode(Node):
+    """The particle_tracker node (module docstring): the body from 3-D points and the stick."""
+
     def __init__(self):
         super().__init__("particle_tracker")
         p = declare_all(self, PARAMS, LIMITS, runtime={})

@@ -97,6 +97,9 @@ RUNTIME = ("sync_timeout_s", "lockstep_timeout_s", "refine_timeout_s")  # read b
 
 
 class SkeletonNode(Node):
+    """The skeleton node (module docstring): every camera's blobs (and edge statistics) in, the body
+    and its prediction out."""
+
     def __init__(self):
         super().__init__("skeleton")
         p = declare_all(self, PARAMS, LIMITS, {k: (lambda v: None) for k in RUNTIME})
