@@ -24,7 +24,7 @@ lint: setup
 
 test: setup data
 	@$(ENV) ruff check src tests bench
-	@$(ENV) python -m pytest tests -q -p no:cacheprovider
+	@$(ENV) python -m pytest tests -q -p no:cacheprovider -n 2 --dist loadfile
 
 # The main job, on a real recording: convert the four Qualisys videos + calibration into
 # a bag once (quarter size, CompressedImage + CameraInfo), replay it through the node

@@ -14,12 +14,21 @@ INSTALL = REPO / "ros2_ws" / "install"
 NODE_BIN = INSTALL / "artrack_nodes" / "lib" / "artrack_nodes"
 
 
+def _private_domain() -> int:
+    """A DDS domain (100-199) of this test process alone: under pytest-xdist (`make test` runs two
+    workers, one test file each at a time) each worker draws from its own block of 25, so that the
+    graphs two workers start at once never share a domain."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    index = int(worker[2:]) if worker[2:].isdigit() else 0
+    return 100 + (25 * index + os.getpid() % 25) % 100
+
+
 def ros_env(domain_id: int | None = None) -> dict[str, str]:
     """The environment of scripts/env.sh, with a private DDS domain for this test run."""
     out = subprocess.run(["bash", "-c", f". {REPO}/scripts/env.sh && env -0"], capture_output=True, check=True)
     env = dict(item.split("=", 1) for item in out.stdout.decode().split("\0") if "=" in item)
     env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
-    env["ROS_DOMAIN_ID"] = str(domain_id if domain_id is not None else 100 + os.getpid() % 100)
+    env["ROS_DOMAIN_ID"] = str(domain_id if domain_id is not None else _private_domain())
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     return env
 
