@@ -71,7 +71,7 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from rosbags.typesys.store import Typestore
 
 from .cameras import Camera
-from .config import yaml_error_text
+from .config import parse_yaml, yaml_error_text
 from .errors import BagError, CalibrationError, InputError, check_output_path
 
 __all__ = [
@@ -620,7 +620,7 @@ class BagReader:
         meta = p / "metadata.yaml"
         if meta.exists():
             try:
-                info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+                info = parse_yaml(meta.read_text())["rosbag2_bagfile_information"]
                 if info.get("storage_identifier") != "mcap":
                     return []
                 if info.get("compression_mode") and str(info.get("compression_mode")).lower() != "none":
@@ -771,7 +771,7 @@ _METADATA_KEYS = ("version", "storage_identifier", "relative_file_paths", "topic
 def _check_metadata(meta: Path) -> None:
     """BagError naming ``meta`` (a rosbag2 metadata.yaml) and the field, if it cannot describe a bag."""
     try:
-        data = yaml.safe_load(meta.read_text())
+        data = parse_yaml(meta.read_text())
     except OSError as exc:
         raise BagError(f"{meta}: cannot read ({exc.strerror or exc})") from None
     except UnicodeDecodeError:
