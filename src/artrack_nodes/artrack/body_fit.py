@@ -5,7 +5,8 @@ information), link goals (the edge statistics' soft link constraints, ALGORITHMS
 the floor contact (:class:`GroundContact`), upright segments (:class:`UprightSegment`) and weak
 rest / previous-pose priors, within the joint limits (``scipy.optimize.least_squares``). How the
 estimators use it (the baseline each frame, the kinematic filters' outlier test and orientation
-goals, the left/right exchange screens) is described in ``artrack.skeleton``.
+goals, the left/right exchange screens) is described in ``artrack.baseline_estimator``
+and ``artrack.kalman_skeleton``.
 """
 
 from __future__ import annotations

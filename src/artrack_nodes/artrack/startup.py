@@ -3,7 +3,8 @@
 Skin blobs matched across views into the face and hands (:func:`match_skin_blobs`), grouped
 into people (:func:`nearest_person`); one camera's start points (:func:`one_view_start_points`);
 the facing that the face's blob sizes tell (:func:`facing_direction`, :func:`facing_agreement`),
-which the face check during tracking uses as well. The rules are described in ``artrack.skeleton``.
+which the face check during tracking uses as well. The rules are described in
+``artrack.estimator``, where the estimators apply them.
 """
 
 from __future__ import annotations
