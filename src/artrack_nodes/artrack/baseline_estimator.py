@@ -1,6 +1,6 @@
 """The raw baseline estimator: per-frame triangulation and a bounded least-squares body fit
 (ALGORITHMS.md §1). The shared frame (start-up, gates, the track's life cycle) is
-``estimator._Estimator``'s.
+``estimator.Estimator``'s.
 
 ``'baseline'`` — the "raw feature tracker" of the paper's Table 1, an honest
 baseline: each frame the labelled 2-D blobs are triangulated
@@ -57,7 +57,7 @@ import numpy as np
 from .body_fit import PointTarget, exchange_sides, fit_pose, mirror_label
 from .body_model import BodyModel
 from .constraints import log_so3
-from .estimator import _Estimator
+from .estimator import Estimator
 from .triangulation import blob_extent, drop_overlapping_pairs
 from .types import Blob2D, Blob3D, BodyEstimate
 
@@ -85,13 +85,13 @@ def _pose_jacobians(body: BodyModel, theta: np.ndarray, h: float = 1e-6) -> tupl
     return Jl, Jb
 
 
-class BaselineEstimator(_Estimator):
+class BaselineEstimator(Estimator):
     """Per-frame triangulation + bounded least-squares body fit (module docstring)."""
 
     kind = "baseline"
 
     def reset(self) -> None:
-        """As :meth:`_Estimator.reset`, with the frame's axis cue and the dof velocities."""
+        """As :meth:`Estimator.reset`, with the frame's axis cue and the dof velocities."""
         super().reset()
         self._axis: tuple[np.ndarray, np.ndarray] | None = None  # this frame's horizontal-axis cue
         self._dof_velocity: np.ndarray | None = None  # smoothed d theta / dt (joint dofs, root position)

@@ -1,6 +1,6 @@
 """The estimators' common frame (ALGORITHMS.md §1): the 3-D blobs, the tracking life cycle, start-up.
 
-``_Estimator`` is the base of the three estimators (``artrack.skeleton.make_estimator``): the
+``Estimator`` is the base of the three estimators (``artrack.skeleton.make_estimator``): the
 baseline (``baseline_estimator``) and the Kalman-filtered skeleton, kinematic or with full
 dynamics (``kalman_skeleton``). It triangulates the labelled 2-D blobs of a frame into 3-D blobs
 (with the gates and screens below), starts, verifies, re-acquires and loses the track, and leaves
@@ -54,13 +54,13 @@ the hands' own labels stay right; at the turn the hands (``tracking.facing_turn_
 keep their labels where the left one lies left of the right one at the new heading.
 A hand lost by its 2-D labels (one that moved faster than its prediction, so the
 gates around the prior found nothing) is re-acquired (``tracking.reacquire_*``,
-:meth:`_Estimator._reacquire`) where the views' unlabelled skin blobs meet within
+:meth:`Estimator._reacquire`) where the views' unlabelled skin blobs meet within
 the arm's reach of its shoulder, away from the other observed blobs; the baseline
 first fits the arm alone to it, since the robust fit would take a target that far
 from the old pose for an outlier. The opposite case, a hand's labels that agree across
 views (two or more) on a point beyond the arm's reach (``tracking.reach_gate_margin`` times it, from
 the shoulder of the current pose: the label sits on another person's face), is not used
-(:meth:`_Estimator._gate_reach`), and the hand may then be re-acquired.
+(:meth:`Estimator._gate_reach`), and the hand may then be re-acquired.
 ``STATUS_LOST`` after ``tracking.lost_after_frames`` consecutive frames with fewer
 than ``tracking.min_blobs`` usable blobs (triangulated; for the Kalman tracker:
 passing the innovation gate); while lost, ``predict`` carries no blobs (so the
@@ -120,7 +120,7 @@ from .types import (
     all_finite,
 )
 
-__all__ = ["BodyKinematics"]
+__all__ = ["BodyKinematics", "Estimator", "n_seen"]
 
 
 # =========================================================================== body kinematics
@@ -251,8 +251,10 @@ def _mass_properties(body: BodyModel) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 # =========================================================================== estimators
-class _Estimator:
-    """Shared machinery: triangulation, status, initialisation, output."""
+class Estimator:
+    """The base of the three estimators (module docstring): a frame's labelled 2-D blobs to 3-D
+    blobs, the track's status and start-up, the face check, re-acquisition and the output. A
+    subclass gives the pose: ``_initialise``, ``_step``, ``_estimate`` and ``_predict``."""
 
     kind = ""
 
@@ -681,7 +683,7 @@ class _Estimator:
                 self._start_verification()
                 self.status, self.missed = STATUS_TRACKING, 0
                 self.stamp_ns = stamp_ns
-                self.quality = _n_seen(obs) / max(len(self.labels), 1)
+                self.quality = n_seen(obs) / max(len(self.labels), 1)
                 self.last_observed = obs
                 return self._estimate(stamp_ns)
             if self.theta is None:
@@ -707,7 +709,7 @@ class _Estimator:
         elif self.status != STATUS_LOST:
             self.status = STATUS_TRACKING
         self.stamp_ns = stamp_ns
-        self.quality = _n_seen(obs) / max(len(self.labels), 1)
+        self.quality = n_seen(obs) / max(len(self.labels), 1)
         self.last_observed = obs
         if self._verify_left > 0 and len(obs) >= cfg.min_blobs:
             self._verify_facing(stamp_ns, obs)
@@ -878,7 +880,7 @@ class _Estimator:
     def _n_used(self, obs: Mapping[str, Blob3D]) -> int:
         """Measurements the last step actually used (a frame with fewer counts as unseen); the
         pseudo-measurements of parts no view found (:meth:`_hidden_observations`) do not count."""
-        return _n_seen(obs)
+        return n_seen(obs)
 
     # -- initialisation ----------------------------------------------------------
     @staticmethod
@@ -1155,6 +1157,6 @@ class _Estimator:
         raise NotImplementedError
 
 
-def _n_seen(obs: Mapping[str, Blob3D]) -> int:
+def n_seen(obs: Mapping[str, Blob3D]) -> int:
     """The 3-D blobs of ``obs`` that some view found (not the pseudo-measurements, which have no cameras)."""
     return sum(1 for blob in obs.values() if blob.cameras)

@@ -1,6 +1,6 @@
 """The dynamic skeleton: Kalman filters as goals of the virtual-work constraint solver
 (ALGORITHMS.md §1, paper §2.1 and §2.3), kinematic or with full dynamics. The shared frame
-(start-up, gates, the track's life cycle) is ``estimator._Estimator``'s; the raw tracker run
+(start-up, gates, the track's life cycle) is ``estimator.Estimator``'s; the raw tracker run
 beside the filters is ``baseline_estimator.BaselineEstimator``.
 
 ``'kinematic'`` — the paper's cheap variant (§2.3, "15 % CPU"): one
@@ -76,7 +76,7 @@ from .constraints import (
     soft_energy_terms,
 )
 from .errors import InputError
-from .estimator import _Estimator, _n_seen
+from .estimator import Estimator, n_seen
 from .kalman import ConstantAccelerationKF
 from .lie import skew
 from .startup import same_blobs
@@ -85,7 +85,7 @@ from .types import STATUS_TRACKING, Blob3D, BodyEstimate
 __all__ = ["DynamicEstimator", "KinematicEstimator"]
 
 
-class KinematicEstimator(_Estimator):
+class KinematicEstimator(Estimator):
     """Kalman filters as goals of the kinematic constraint solver (module docstring).
 
     State: ``theta`` / link poses ``p``, ``R``; ``blob_kf`` (B blob centres) and
@@ -116,7 +116,7 @@ class KinematicEstimator(_Estimator):
 
     # -- the raw tracker beside the filters (kinematic.fit_source: baseline) -----------
     def reset(self) -> None:
-        """As :meth:`_Estimator.reset`, the filters' count and the raw tracker too."""
+        """As :meth:`Estimator.reset`, the filters' count and the raw tracker too."""
         super().reset()
         self._filter_frames = 0  # filter updates since the last (re)initialisation
         #: stamps (ns) at which the filters were re-initialised at the raw tracker's new track
@@ -127,7 +127,7 @@ class KinematicEstimator(_Estimator):
         self._raw_initialisations = self.raw.initialisations if self.raw is not None else 0
 
     def update(self, stamp_ns, blobs_by_camera, edges=None):
-        """As :meth:`_Estimator.update`, with the raw tracker (``self.raw``) updated first on the
+        """As :meth:`Estimator.update`, with the raw tracker (``self.raw``) updated first on the
         same blobs: its frame fit is the filters' outlier test and orientation goal, and while
         the filters warm up (``kinematic.warmup_frames``) its estimate is the output."""
         if self.raw is None:
@@ -152,7 +152,7 @@ class KinematicEstimator(_Estimator):
         return self.raw.predict(stamp_ns) if self._raw_leads() else super().predict(stamp_ns)
 
     def reseed(self, stamp_ns, joints, sigma_m=0.05, limb_sigma_m=None):
-        """As :meth:`_Estimator.reseed`, the raw tracker re-seeded first."""
+        """As :meth:`Estimator.reseed`, the raw tracker re-seeded first."""
         if self.raw is not None:
             self.raw.reseed(stamp_ns, joints, sigma_m, limb_sigma_m)
         return super().reseed(stamp_ns, joints, sigma_m, limb_sigma_m)
@@ -180,7 +180,7 @@ class KinematicEstimator(_Estimator):
         return True
 
     def _check_facing(self, stamp_ns, blobs_by_camera, obs):
-        """The face check (:meth:`_Estimator._check_facing`), left to the raw tracker while it
+        """The face check (:meth:`Estimator._check_facing`), left to the raw tracker while it
         tracks and ``kinematic.follow_raw_track`` is on (its turns re-initialise the filters)."""
         if not self._raw_owns_track():
             super()._check_facing(stamp_ns, blobs_by_camera, obs)
@@ -220,7 +220,7 @@ class KinematicEstimator(_Estimator):
         self.omega = np.zeros((self.kin.n_links, 3))
         self.link_cov = np.tile(np.eye(6) * k.init_position_sigma_m**2, (self.kin.n_links, 1, 1))
         self.iterations = 0
-        self.n_accepted = _n_seen(obs)
+        self.n_accepted = n_seen(obs)
         self._fit_theta = None  # the outlier fit's own track (orientation_from_fit)
         self._filter_frames = 0
 
@@ -299,7 +299,7 @@ class KinematicEstimator(_Estimator):
         }
 
     def _associate(self, labelled):
-        """As :meth:`_Estimator._associate`, reusing the raw tracker's association of this frame
+        """As :meth:`Estimator._associate`, reusing the raw tracker's association of this frame
         when it ran on the very same blobs (it did, unless its ``fit.overlap_parts`` screen left a
         pair out): the same function of the same input, computed once."""
         if self.raw is not None and self.raw._association is not None:
@@ -311,7 +311,7 @@ class KinematicEstimator(_Estimator):
         return super()._associate(labelled)
 
     def _triangulate_labelled(self, labelled, priors):
-        """As :meth:`_Estimator._triangulate_labelled`; when the raw tracker triangulated the very
+        """As :meth:`Estimator._triangulate_labelled`; when the raw tracker triangulated the very
         same associated blobs this frame, its results for the labels whose rays met (no prior used)
         are taken as they are, and only the others are triangulated here, with this estimator's
         priors: the same blobs as triangulating all of them again, in the same order (those others to
@@ -521,7 +521,7 @@ class DynamicEstimator(KinematicEstimator):
         )
 
     def _n_used(self, obs):
-        return _n_seen(obs)
+        return n_seen(obs)
 
     def _priors_callable(self, static: list):
         d = self.cfg.dynamic

@@ -8,7 +8,7 @@
 The parts they share live beside this module: the tunables in ``skeleton_config``, the
 cues in ``startup``. The estimators live in one module each, with the rules they apply:
 
-``estimator``           ``_Estimator``, their common frame: 3-D blobs from the labelled 2-D blobs,
+``estimator``           ``Estimator``, their common frame: 3-D blobs from the labelled 2-D blobs,
                         start-up, the face check and verification, re-acquisition, the track's
                         life cycle, one or two cameras; ``BodyKinematics`` (theta <-> link poses)
 ``baseline_estimator``  ``'baseline'``, the raw feature tracker: triangulation + body fit per frame

@@ -38,14 +38,14 @@ class MeasurementConfig:
     #: without the view that disagrees (:func:`artrack.triangulation._drop_outlier_views`; 0 = off) ...
     view_outlier_chi2: float = 4.0
     #: ... once a track is this many frames old
-    #: (:meth:`artrack.estimator._Estimator._view_outlier_threshold`; 0 = always)
+    #: (:meth:`artrack.estimator.Estimator._view_outlier_threshold`; 0 = always)
     view_outlier_after_frames: int = 40
     #: a view's blob of n pixels counts n / (n + n₀) in the triangulation, n₀ = this × the image
     #: area (:func:`artrack.triangulation.triangulate_blobs`; 0 = by its extent alone)
     small_blob_fraction: float = 3.90625e-4
     #: a view's 2-D blob of ``min_view_labels`` with fewer pixels than this × the camera's image area (a
     #: sliver) is left out of the triangulation where two or more views see the part with more pixels
-    #: (0 = off; :meth:`artrack.estimator._Estimator._drop_small_views`)
+    #: (0 = off; :meth:`artrack.estimator.Estimator._drop_small_views`)
     min_view_fraction: float = 1.953125e-4
     #: the blob labels ``min_view_fraction`` applies to
     min_view_labels: list = field(default_factory=lambda: ["head", "l_hand", "r_hand"])
@@ -54,11 +54,11 @@ class MeasurementConfig:
     min_view_ray_angle_deg: float = 45.0
     #: a 3-D blob seen by one view only takes its depth along that view's ray from the prior it was
     #: triangulated with (the prediction); the body fits count it across the ray only, and this sigma
-    #: (m) along it (:meth:`artrack.estimator._Estimator._blob_targets`); 0 = as triangulated (the prediction's depth)
+    #: (m) along it (:meth:`artrack.estimator.Estimator._blob_targets`); 0 = as triangulated (the prediction's depth)
     one_view_depth_sigma_m: float = 0.0
     #: negative evidence (:mod:`artrack.hidden`): a part of these labels found by one view only takes
     #: its prior's depth along that ray where the views that looked for it and did not find it would
-    #: not have seen it (:meth:`artrack.estimator._Estimator._hidden_priors`; [] = off)
+    #: not have seen it (:meth:`artrack.estimator.Estimator._hidden_priors`; [] = off)
     hidden_labels: list = field(default_factory=lambda: ["l_hand", "r_hand"])
     #: ... searched over the prediction's ± this many standard deviations
     hidden_sigmas: float = 3.0
@@ -69,7 +69,7 @@ class MeasurementConfig:
     hidden_inset_px: float = 0.0
     #: a part of ``hidden_labels`` that no view found is measured, to this sigma (m), at the likeliest
     #: point given that the views which looked did not find it
-    #: (:meth:`artrack.estimator._Estimator._hidden_observations`;
+    #: (:meth:`artrack.estimator.Estimator._hidden_observations`;
     #: 0 = off; only beside ``tracking.min_blobs`` real 3-D blobs, and never counted as seen)
     hidden_no_view_sigma_m: float = 0.1
 
@@ -83,7 +83,7 @@ class TrackingConfig:
     #: a LOST estimator re-initialises from its own blobs (False: only ``reseed`` restarts it, e.g. from
     #: the loose_limbed node; the first start still uses the blobs)
     relocalise_from_blobs: bool = True
-    #: a re-seed (:meth:`artrack.estimator._Estimator.reseed`) from another estimator's body holds its elbows, wrists,
+    #: a re-seed (:meth:`artrack.estimator.Estimator.reseed`) from another estimator's body holds its elbows, wrists,
     #: knees and ankles only this loosely, m (its trunk and head at the re-seed's sigma): the
     #: loose-limbed body's limbs are its weakest part, and the rest pose and the blobs do better
     reseed_limb_sigma_m: float = 1.0
@@ -108,7 +108,7 @@ class TrackingConfig:
     #: turned to (a heading that drifted round while the group's own labels stayed right), exchanged
     #: otherwise; other sided parts are always exchanged; [] = every label exchanged
     facing_turn_groups: list = field(default_factory=lambda: [["hand"]])
-    #: parts re-acquired when lost (:meth:`artrack.estimator._Estimator._reacquire`): a part of these without a 3-D blob
+    #: parts re-acquired when lost (:meth:`artrack.estimator.Estimator._reacquire`): a part of these without a 3-D blob
     #: seen in two or more views takes the point where the views' unlabelled skin blobs meet ...
     reacquire_labels: list = field(default_factory=lambda: ["l_hand", "r_hand"])
     #: ... if that point lies farther than this from every other observed 3-D blob, m ...
