@@ -19,7 +19,12 @@ one consistent body: the body model fitted robustly to the frame's blobs (as
 the baseline); a blob far from that fit gets its R inflated by a Cauchy weight
 (``kinematic.outlier_fit_scale``), since each filter alone judges its blob only
 against its own prediction and would follow a consistently mislabelled blob.
-That fit is also the links' orientation measurement (``kinematic.orientation_from_fit``):
+Conversely, a blob that fit explains but its filter's prediction does not is a manoeuvre (a
+hand that starts to wave): the filter's process noise is scaled by the normalised innovation,
+at most ``kinematic.maneuver_max_scale`` times (adaptive process noise), so that the filter
+follows the limb rather than the soft innovation gate (``kinematic.robust_scale``) taking the
+motion for an outlier and the filter falling behind. That fit is also the links' orientation
+measurement (``kinematic.orientation_from_fit``):
 the blob filters measure positions only, and a torso whose blobs sit on its axis
 (pelvis, torso, head) leaves its heading to the springs; the solver's orientation
 springs then pull each link to the fit's rotation instead of its extrapolated
@@ -363,6 +368,15 @@ class KinematicEstimator(Estimator):
             S = self.blob_kf.P_prior[b, :3, :3] + Rm[b]
             nu = z[b] - self.blob_kf.x_prior[b, :3]
             d2 = float(nu @ np.linalg.solve(S, nu))
+            if k.maneuver_max_scale > 1.0 and d2 > 3.0 and fit_d2.get(lab, np.inf) <= k.outlier_fit_scale**2:
+                # A manoeuvre: the frame's body fit explains the blob, the filter's constant-acceleration
+                # prediction does not. Its process noise grows with the normalised innovation (adaptive
+                # process noise, Bar-Shalom et al. 2001, §11.2), so the filter follows the limb instead
+                # of the soft gate below taking the innovation for an outlier and the filter falling behind.
+                scale = min(d2 / 3.0, k.maneuver_max_scale)
+                self.blob_kf.P_prior[b] += (scale - 1.0) * self.blob_kf.Q[b]
+                S = self.blob_kf.P_prior[b, :3, :3] + Rm[b]
+                d2 = float(nu @ np.linalg.solve(S, nu))
             mask[b] = d2 <= self.cfg.measurement.gate_chi2
             if lab in fit_d2:
                 # Outlier classification against the frame's robust body fit (_outlier_fit):

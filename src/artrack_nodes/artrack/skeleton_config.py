@@ -209,6 +209,10 @@ class KinematicConfig:
     angular_velocity_smoothing: float = 0.5
     robust_scale: float = 3.0
     outlier_fit_scale: float = 1.5
+    #: the largest factor on a blob filter's process noise in a frame where the frame's robust body fit
+    #: explains its blob (weight factor at most 2) but the filter's prediction does not (normalised
+    #: innovation squared d²/3 above 1): a manoeuvre, not an outlier (1 = off; config/skeleton.yaml)
+    maneuver_max_scale: float = 10.0
     orientation_from_fit: bool = True
     fit_source: str = "baseline"
     warmup_frames: int = 40
