@@ -1938,5 +1938,5 @@ def test_kinematic_filters_follow_a_manoeuvre_that_the_body_fit_explains(body, c
             e_k.append(float(np.linalg.norm(e.joints[hands] - body.joint_positions(theta)[hands], axis=1).mean()))
         assert e.status == STATUS_TRACKING
         errs[scale] = float(np.mean(e_k[10:]))
-    # measured: 25.8 mm without, 24.7 with (the noise-free blobs of 640x480 views: little lag to take off)
+    # measured: 25.8 mm without, 24.7 with (blobs with 1-px noise in 640x480 views: little lag to take off)
     assert errs[10.0] < 0.97 * errs[1.0], errs
