@@ -102,6 +102,13 @@ class KalmanFilter:
         self.Q = _broadcast_batch("Q", Q, self.n_batch, (self.n_state, self.n_state))
         self.x, self.P = self.x_prior, self.P_prior
 
+    def inflate_prior(self, i: int, scale: float) -> None:
+        """Count the last step's process noise ``scale`` times in filter ``i``'s prior (adaptive
+        process noise, Bar-Shalom, Li and Kirubarajan 2001, §11.2): ``P_prior[i] += (scale − 1) Q[i]``.
+        Between a predict and the update that follows it."""
+        self.P_prior[i] = self.P_prior[i] + (scale - 1.0) * self.Q[i]
+        self.P = self.P_prior
+
     # ------------------------------------------------------------------- update
     def update_with(
         self,

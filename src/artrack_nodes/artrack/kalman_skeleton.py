@@ -374,7 +374,7 @@ class KinematicEstimator(Estimator):
                 # process noise, Bar-Shalom et al. 2001, §11.2), so the filter follows the limb instead
                 # of the soft gate below taking the innovation for an outlier and the filter falling behind.
                 scale = min(d2 / 3.0, k.maneuver_max_scale)
-                self.blob_kf.P_prior[b] += (scale - 1.0) * self.blob_kf.Q[b]
+                self.blob_kf.inflate_prior(b, scale)
                 S = self.blob_kf.P_prior[b, :3, :3] + Rm[b]
                 d2 = float(nu @ np.linalg.solve(S, nu))
             mask[b] = d2 <= self.cfg.measurement.gate_chi2
