@@ -5,12 +5,14 @@ messages to a free-running `skeleton` executable and checks after each fault tha
 alive and still publishing bodies: a camera that stops (the tracker goes on with the other and
 says so) and comes back, late and out-of-order messages, bad messages (unknown camera, NaN
 blob, NaN calibration), the node killed and restarted mid-run (it re-synchronises from the
-latched calibration). A truncated bag is played by `bag_player` up to the damage.
+latched calibration). A truncated bag is played by `bag_player` up to the damage, and not before
+the nodes it waits for have said they are ready.
 """
 
 from __future__ import annotations
 
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -203,6 +205,40 @@ def test_free_running_bag_player_paces_every_frame_out_in_order(env, probe, smal
     # best effort (sensor-data QoS): a frame may be lost, but none repeated, reordered or invented
     assert got == sorted(set(got)) and set(got) <= set(stamps)
     assert len(got) >= len(stamps) // 2, f"only {len(got)} of {len(stamps)} frames arrived"
+
+
+def test_bag_player_waits_for_the_named_nodes_to_say_they_are_ready(env, probe, small_scene):
+    """A node already in the ROS graph may still be loading its models before it creates its image
+    readers (the loose_limbed node under a loaded machine missed the first 11 frames, and with them
+    its empty-room background): the player waits for each node of ``wait_for_nodes`` to say it is
+    ready on /artrack_nodes/ready (every artrack node does, once constructed), not for it to be
+    present. The probe node, present from the start, says so only after 3 s: no frame goes out
+    before, every frame after."""
+    node, executor = probe
+    f = rclpy_factory()
+    from artrack_nodes.common import IMAGE_QOS_SENSOR, announce_ready
+
+    got: list[float] = []
+    node.create_subscription(f.cls("sensor_msgs/msg/Image"), "/cameras/cam01/image_raw",
+                             lambda m: got.append(time.monotonic()), IMAGE_QOS_SENSOR)
+    proc = subprocess.Popen([str(NODE_BIN / "bag_player"), "--ros-args", "-p", f"bag:={small_scene}",
+                             "-p", "lockstep:=false", "-p", "rate:=4.0", "-p", "cameras:=[cam01]",
+                             "-p", "start_timeout_s:=60.0", "-p", "linger_s:=0.2",
+                             "-p", f"wait_for_nodes:=[{node.get_name()}]"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        spin_until(executor, lambda: proc.poll() is not None, 3.0)
+        assert proc.poll() is None and not got, "the player must not play before the node said it is ready"
+        announce_ready(node)
+        said = time.monotonic()
+        spin_until(executor, lambda: proc.poll() is not None, 60)
+        output = proc.communicate(timeout=10)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and "done: 75 frames" in output, output
+    assert "not ready" not in output, output
+    assert got and min(got) >= said, "frames went out before the node said it is ready"
 
 
 def test_lockstep_skeleton_goes_on_without_a_dead_camera(env, probe, tmp_path):

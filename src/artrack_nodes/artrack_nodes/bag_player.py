@@ -21,6 +21,7 @@ from artrack.messages import ns_from_time
 from .common import (
     BODY_TOPIC,
     PREDICTION_TOPIC,
+    READY_TOPIC,
     RESULT_QOS,
     CameraPublishers,
     Pacer,
@@ -46,9 +47,11 @@ PARAMS = [
     ("extra_topics", [""], "further per-frame topics to replay with each frame's images, matched by stamp "
                            "(e.g. /cameras/rgbd/points, /artrack/stick); playing starts once each has a "
                            "subscriber (at most start_timeout_s); empty: none"),
-    ("wait_for_nodes", [""], "node names (without namespace) that must be in the ROS graph before playing, e.g. "
+    ("wait_for_nodes", [""], "node names (without namespace) that must have said they are ready (on "
+                             "/artrack_nodes/ready, as every artrack node does once constructed) before playing, e.g. "
                              "every node of the launched graph (config/graph.yaml passes ${graph_nodes}): a node "
-                             "that starts late would miss the first frames (at most start_timeout_s); empty: none"),
+                             "that starts late would miss the first frames (at most start_timeout_s); in lockstep "
+                             "the images' readers the ROS graph lists must be matched too; empty: none"),
     ("linger_for", [""], "TrackedBody topics of slower estimators (e.g. /artrack/particles/body): after the last "
                          "frame, end as soon as each has published a body for it (at most linger_s); empty: none"),
 ]
@@ -81,6 +84,9 @@ class BagPlayerNode(Node):
         self.pubs = CameraPublishers(self, cameras, reliable_images=bool(p["lockstep"]))
         self.extra = self._load_extra([t for t in p["extra_topics"] if t])
         self.create_subscription(msgs().cls("artrack_msgs/msg/TrackedBody"), BODY_TOPIC, self.on_body, RESULT_QOS)
+        self.ready_nodes: set[str] = set()  # names heard on READY_TOPIC
+        self.create_subscription(msgs().cls("std_msgs/msg/String"), READY_TOPIC,
+                                 lambda m: self.ready_nodes.add(str(m.data)), RESULT_QOS)
         self.linger_for: dict[str, set[int]] = {t: set() for t in p["linger_for"] if t}
         for t in self.linger_for:
             self.create_subscription(msgs().cls("artrack_msgs/msg/TrackedBody"), t,
@@ -139,15 +145,17 @@ class BagPlayerNode(Node):
             self._next_frame()  # lockstep: the loop has closed, the next frame goes out at once
 
     def _missing_nodes(self) -> list[str]:
-        """The names of ``wait_for_nodes`` not (yet) in the ROS graph, this node's own excepted."""
-        present = set(self.get_node_names())
-        return sorted(n for n in self.p["wait_for_nodes"] if n and n != self.get_name() and n not in present)
+        """The names of ``wait_for_nodes`` that have not (yet) said they are ready, this node's own
+        excepted."""
+        return sorted(n for n in self.p["wait_for_nodes"] if n and n != self.get_name() and n not in self.ready_nodes)
 
     def _graph_ready(self) -> bool:
         if self._missing_nodes():
             return False
         if self.pubs.subscriber_count() < 1:
             return False
+        if self.lockstep and not self.pubs.all_matched():
+            return False  # a reader the graph lists, not matched yet, would miss the first frames
         if any(p.get_subscription_count() < 1 for p in self.extra_pubs):
             return False  # e.g. a particle_tracker still starting: it would miss the first frames
         if self.p["wait_for_recorder"] and not self._recorder_ready():
@@ -177,7 +185,7 @@ class BagPlayerNode(Node):
                 if not self._graph_ready():
                     missing = self._missing_nodes()
                     self.get_logger().warning("graph not complete after start_timeout_s"
-                                              + (f" (no node {', '.join(missing)})" if missing else "")
+                                              + (f" (not ready: {', '.join(missing)})" if missing else "")
                                               + "; playing anyway")
                 time.sleep(0.5)  # let late discovery of the remaining endpoints settle
                 self._next_frame()

@@ -63,6 +63,13 @@ PREDICTION_TOPIC = "/artrack/prediction"
 REFINEMENT_TOPIC = "/artrack/refinement"
 GROUND_TRUTH_TOPIC = "/artrack/ground_truth"
 DIAGNOSTICS_TOPIC = "/diagnostics"
+#: std_msgs/String (RESULT_QOS: kept for late readers, and deep enough that a reader hearing many nodes
+#: at once loses none): a node's name, published once the node is constructed, its subscriptions
+#: created (:func:`run_node`). The bag player waits for it from every node of the graph
+#: (``wait_for_nodes``): a node merely present in the ROS graph may still be loading its models, and a
+#: reader created after the first frames were played misses them. Outside /artrack/*, which the
+#: bag recorder records.
+READY_TOPIC = "/artrack_nodes/ready"
 #: /diagnostics: reliable, volatile, last 10 (as diagnostic_updater).
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
@@ -134,6 +141,16 @@ def spin(node: Node, poll_s: float = SPIN_POLL_S) -> None:
         executor.remove_node(node)
 
 
+def announce_ready(node: Node) -> None:
+    """Publish the node's name on READY_TOPIC (the publisher is kept on the node)."""
+    f = msgs()
+    pub = node.create_publisher(f.cls("std_msgs/msg/String"), READY_TOPIC, RESULT_QOS)
+    msg = f.cls("std_msgs/msg/String")()
+    msg.data = node.get_name()
+    pub.publish(msg)
+    node._artrack_ready_publisher = pub
+
+
 def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, str]], args=None,
              limits: dict[str, tuple] | None = None, runtime: Iterable[str] | None = None) -> int:
     """main() for every node: --help, init, spin, clean shutdown. Returns the exit code.
@@ -152,6 +169,7 @@ def run_node(make: Callable[[], Node], doc: str, params: list[tuple[str, Any, st
     code = 0
     try:
         node = make()
+        announce_ready(node)
         spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -379,6 +397,12 @@ class CameraPublishers:
     def subscriber_count(self) -> int:
         """Smallest number of subscribers over the image topics."""
         return min((p.get_subscription_count() for p in self.image_pub.values()), default=0)
+
+    def all_matched(self) -> bool:
+        """Whether every image topic's publisher has matched as many readers as the ROS graph lists
+        for it (discovery lists a reader before its publisher has matched it)."""
+        return all(p.get_subscription_count() >= self.node.count_subscribers(p.topic_name)
+                   for p in self.image_pub.values())
 
 
 class CameraRigListener:
