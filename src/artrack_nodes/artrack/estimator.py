@@ -26,7 +26,8 @@ Start-up (``STATUS_INITIALIZING`` until a pose exists): from labelled blobs
 from the start-up classes: the ``foreground`` blob is triangulated to the body
 centre, ``skin`` blobs are matched across views (candidate correspondences seeded
 from camera pairs, extended to the other views, scored by reprojection error,
-picked greedily; with ``startup.start_radius_m`` > 0 only those within that horizontal
+picked greedily; a speck, none of whose blobs is ``startup.min_skin_size_m`` large, is no
+candidate; with ``startup.start_radius_m`` > 0 only those within that horizontal
 distance of ``startup.start_xy``: the person standing there when several are in view;
 and, with ``startup.person_gap_m`` > 0, grouped into people by their horizontal gaps, of
 which the fullest group whose face is nearest ``start_xy`` is kept, :func:`nearest_person`),
@@ -975,7 +976,7 @@ class Estimator:
             skin[c] = sk[: s.max_skin_blobs_per_camera]
         points = match_skin_blobs(
             skin, self.cameras, 6, s.match_gate_sigma, s.match_gate_px, s.missing_view_penalty_px, s.max_skin_size_m,
-            s.share_taken_views, s.min_hand_separation_m,
+            s.share_taken_views, s.min_hand_separation_m, s.min_skin_size_m,
         )
         centre = None if centre_blob is None else centre_blob.mean
         rest_p, rest_R = self.kin.poses(self.kin.rest)

@@ -269,6 +269,10 @@ class StartupConfig:
     #: depth, :func:`artrack.startup.blob_size_m`) sees the point but does not locate it
     #: (:func:`artrack.startup.match_skin_blobs`); 0 = off
     max_skin_size_m: float = 0.32
+    #: a start-up skin point none of whose locating blobs is at least this large (m, as
+    #: ``max_skin_size_m``) is a speck, neither the face nor a hand (:func:`artrack.startup.match_skin_blobs`
+    #: ``min_size_m``); 0 = off
+    min_skin_size_m: float = 0.07
     #: a start-up skin point whose extension to a further view took a blob that a better point other
     #: than the face, at least ``min_hand_separation_m`` away horizontally, already took (two hands
     #: merged there) is kept, that view seeing it without locating it (:func:`artrack.startup.match_skin_blobs`

@@ -144,6 +144,7 @@ def match_skin_blobs(
     max_size_m: float = 0.0,
     share_taken_views: bool = False,
     share_min_separation_m: float = 0.0,
+    min_size_m: float = 0.0,
 ) -> list[tuple[np.ndarray, float, tuple[str, ...], Blob3D]]:
     """Match unlabelled skin blobs across views into at most ``max_points`` 3-D points.
 
@@ -163,7 +164,10 @@ def match_skin_blobs(
     point is the highest so far (the face): a ghost of the start position near the head lined up
     with the face's blobs (synthetic default scene, seed 21), nor when the two points are less than
     ``share_min_separation_m`` apart horizontally (the other hand stands beside a hand; a skin
-    point stacked above it is more often its forearm or a ghost: self-occlusion seed 44). Returns [(X (3,)
+    point stacked above it is more often its forearm or a ghost: self-occlusion seed 44).
+    ``min_size_m`` > 0: a candidate whose locating blobs are all smaller than this at the point is a
+    speck (a few skin-coloured pixels, e.g. through the hair on the crown: line scene seed 1, 5-8 px
+    in three views, 0.18 m above the face), not a face or a hand: it is not taken. Returns [(X (3,)
     world m, score px, the names of the cameras that see it, the triangulated Blob3D
     (label 'skin'; its cameras those that locate it))], best first.
     """
@@ -220,10 +224,13 @@ def match_skin_blobs(
                 )
                 if blob is None:
                     continue
-                errs = []
+                errs, largest = [], 0.0
                 for c, k in members.items():
-                    uv, _ = cameras[c].project(blob.mean[None])
+                    uv, depth = cameras[c].project(blob.mean[None])
                     errs.append(float(np.linalg.norm(uv[0] - np.asarray(skin_by_camera[c][k].mean, float))))
+                    largest = max(largest, blob_size_m(cameras[c], skin_by_camera[c][k], float(depth[0])))
+                if largest < min_size_m:
+                    continue  # a speck
                 seen = len(members) + len(oversized)
                 score = float(np.mean(errs)) + missing_view_penalty_px * (len(names) - seen)
                 cands[key] = (blob.mean, score, tuple(sorted([*members, *oversized])), blob, members)
