@@ -228,8 +228,9 @@ def match_skin_blobs(
                 for c, k in members.items():
                     uv, depth = cameras[c].project(blob.mean[None])
                     errs.append(float(np.linalg.norm(uv[0] - np.asarray(skin_by_camera[c][k].mean, float))))
-                    largest = max(largest, blob_size_m(cameras[c], skin_by_camera[c][k], float(depth[0])))
-                if largest < min_size_m:
+                    if min_size_m > 0:
+                        largest = max(largest, blob_size_m(cameras[c], skin_by_camera[c][k], float(depth[0])))
+                if min_size_m > 0 and largest < min_size_m:
                     continue  # a speck
                 seen = len(members) + len(oversized)
                 score = float(np.mean(errs)) + missing_view_penalty_px * (len(names) - seen)
