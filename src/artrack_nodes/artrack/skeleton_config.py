@@ -89,6 +89,9 @@ class TrackingConfig:
     reseed_limb_sigma_m: float = 1.0
     verify_frames: int = 20
     flip_cost_ratio: float = 0.5
+    #: parts (no side prefix) whose left/right labels the verification also exchanges alone, heading
+    #: kept, and switches to by the same ``flip_cost_ratio`` rule; [] = none
+    verify_swap_groups: list = field(default_factory=lambda: [["hand"]])
     #: the face check (:func:`artrack.startup.facing_agreement`): over this many frames while tracking (0 = off) ...
     facing_check_frames: int = 15
     #: ... a mean cosine below this between the estimated facing and the way the ``facing_label``
@@ -409,7 +412,8 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
     if not 1e-12 <= out.fit.tolerance < 1.0:
         raise InputError(f"skeleton config: field 'fit.tolerance' must be in [1e-12, 1) (got {out.fit.tolerance!r})")
     for name, groups in (("fit.mirror_groups", out.fit.mirror_groups),
-                         ("tracking.facing_turn_groups", out.tracking.facing_turn_groups)):
+                         ("tracking.facing_turn_groups", out.tracking.facing_turn_groups),
+                         ("tracking.verify_swap_groups", out.tracking.verify_swap_groups)):
         if not all(isinstance(g, (list, tuple)) and g and all(isinstance(p, str) and p for p in g) for g in groups):
             raise InputError(f"skeleton config: field '{name}' must be a list of lists of part names "
                              "(without the side prefix, e.g. [[thigh, shin], [shin]])")

@@ -164,7 +164,10 @@ def match_skin_blobs(
     point is the highest so far (the face): a ghost of the start position near the head lined up
     with the face's blobs (synthetic default scene, seed 21), nor when the two points are less than
     ``share_min_separation_m`` apart horizontally (the other hand stands beside a hand; a skin
-    point stacked above it is more often its forearm or a ghost: self-occlusion seed 44).
+    point stacked above it is more often its forearm or a ghost: self-occlusion seed 44). An
+    oversized view only sees its point: its blob is taken by nobody (rotation scene seed 4: the
+    face-and-neck blob of the view behind a hand raised before the face was oversized at the hand,
+    and the hand, taken first, took it from the face, which was dropped).
     ``min_size_m`` > 0: a candidate whose locating blobs are all smaller than this at the point is a
     speck (a few skin-coloured pixels, e.g. through the hair on the crown: line scene seed 1, 5-8 px
     in three views, 0.18 m above the face), not a face or a hand: it is not taken. Returns [(X (3,)
@@ -237,8 +240,8 @@ def match_skin_blobs(
                 cands[key] = (blob.mean, score, tuple(sorted([*members, *oversized])), blob, members)
     out = []
     owner: dict = {}  # a taken 2-D blob -> the index in ``out`` of the point that took it
-    for key, (X, score, cams, blob, members) in sorted(cands.items(), key=lambda kv: kv[1][1]):
-        taken = [m for m in key if m in owner]
+    for X, score, cams, blob, members in sorted(cands.values(), key=lambda v: v[1]):
+        taken = [m for m in members.items() if m in owner]  # an oversized view only sees: it takes nothing
         if taken:
             # Shared only with points below the highest one so far (the face: see the docstring).
             highest = max(range(len(out)), key=lambda i: float(out[i][0][2]))
@@ -250,7 +253,7 @@ def match_skin_blobs(
                                    for m in taken):
                 continue
             X = blob.mean
-        owner.update(dict.fromkeys((m for m in key if m not in owner), len(out)))
+        owner.update(dict.fromkeys((m for m in members.items() if m not in owner), len(out)))
         out.append((X, score, cams, blob))
         if len(out) >= max_points:
             break
