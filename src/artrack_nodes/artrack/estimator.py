@@ -90,7 +90,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -759,6 +759,12 @@ class Estimator:
     # -- facing verification ----------------------------------------------------
     def _start_verification(self) -> None:
         self._verify_left = self.cfg.tracking.verify_frames
+        self._reset_verification_sums()
+        self._facing: list[float] = []  # the face check's cosines, newest last (a new track starts afresh)
+        self._facing_ways: list[np.ndarray] = []  # ... and the facing directions they came from
+
+    def _reset_verification_sums(self) -> None:
+        """The verification's summed fit costs and the hypotheses' last fits, back to none."""
         self._verify_n = 0
         self._cost_current = self._cost_flipped = 0.0
         self._flip_theta: np.ndarray | None = None
@@ -767,27 +773,19 @@ class Estimator:
         # that observed one of its parts
         self._cost_swapped = [[0.0, 0.0] for _ in groups]
         self._swap_theta: list[np.ndarray | None] = [None] * len(groups)
-        self._facing: list[float] = []  # the face check's cosines, newest last (a new track starts afresh)
-        self._facing_ways: list[np.ndarray] = []  # ... and the facing directions they came from
 
     def _mirrored(self, obs: Mapping[str, Blob3D], keep: Iterable[str] = ()) -> dict[str, Blob3D]:
         """The blobs with their left and right labels exchanged (l_ <-> r_; others kept, and those of
         the parts in ``keep``, named without the side prefix)."""
         keep = set(keep)
-        out = {}
-        for lab, blob in obs.items():
-            m = lab if lab[2:] in keep else mirror_label(lab)
-            if m in self.labels:
-                out[m] = dataclasses.replace(blob, label=m)
-        return out
+        return self._exchanged(obs, lambda part: part not in keep)
 
-    def _exchanged(self, obs: Mapping[str, Blob3D], parts: Iterable[str]) -> dict[str, Blob3D]:
-        """The blobs with the left and right labels of ``parts`` (named without the side prefix)
-        exchanged; every other label kept."""
-        parts = set(parts)
+    def _exchanged(self, obs: Mapping[str, Blob3D], exchange: Callable[[str], bool]) -> dict[str, Blob3D]:
+        """The blobs with the left and right labels (l_ <-> r_) of the parts for which ``exchange(part)``
+        (the part named without the side prefix) is true exchanged; every other label kept."""
         out = {}
         for lab, blob in obs.items():
-            m = mirror_label(lab) if lab[2:] in parts else lab
+            m = mirror_label(lab) if exchange(lab[2:]) else lab
             if m in self.labels:
                 out[m] = dataclasses.replace(blob, label=m)
         return out
@@ -873,7 +871,7 @@ class Estimator:
         for g, group in enumerate(t.verify_swap_groups):
             if not any(lab[2:] in group for lab in obs):
                 continue  # none of the group's parts is observed: exchanging changes nothing
-            exchanged = self._exchanged(obs, group)
+            exchanged = self._exchanged(obs, lambda part, group=group: part in group)
             start = self.theta if self._swap_theta[g] is None else self._swap_theta[g]
             theta_s, cost_s, _ = fit_pose(
                 self.body, start, self._blob_targets(exchanged), self.kin.rest, self.rest_sigma_dof, None,
@@ -915,10 +913,7 @@ class Estimator:
             if ratio < t.flip_cost_ratio:
                 self._initialise(stamp_ns, theta_s, exchanged)
                 self.last_observed = exchanged
-                # the sums were of the other labels: the remaining frames verify afresh
-                self._verify_n, self._cost_current, self._cost_flipped, self._flip_theta = 0, 0.0, 0.0, None
-                self._cost_swapped = [[0.0, 0.0] for _ in t.verify_swap_groups]
-                self._swap_theta = [None] * len(t.verify_swap_groups)
+                self._reset_verification_sums()  # the sums were of the other labels: verify the rest afresh
 
     def predict(self, stamp_ns: int) -> BodyEstimate:
         """Prediction for stamp_ns (normally the next frame); ``.blobs`` feed feedback projection.
