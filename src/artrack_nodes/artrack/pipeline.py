@@ -365,7 +365,10 @@ class ClosedLoopPipeline:
         estimator = self.skeleton.estimator
         joints = estimator.check_reseed_joints(joints)  # before anything is reset
         estimator.reset()
-        estimator.reseed(int(stamp_ns) - 1, joints, limb_sigma_m=0.05)  # known joints: the limbs too
+        # known joints: the limbs too; at the frame's own stamp, so that its update follows no time
+        # step (at stamp - 1, before stop 71, the first update's 1-ns step made the baseline's
+        # joint velocities ~1e8 rad/s: lost at the next frame)
+        estimator.reseed(int(stamp_ns), joints, limb_sigma_m=0.05)
         for stage in self.edge_stages.values():
             stage.relearn()
         self._feed_back(estimator.predict(int(stamp_ns)))
