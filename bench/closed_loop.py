@@ -385,7 +385,7 @@ def main() -> int:
                          "(PipelineConfig.refine_passes; default 0)")
     ap.add_argument("--refine-min-interval", type=float, default=0.05, metavar="S")
     ap.add_argument("--startup-refine-frames", type=int, default=None, metavar="N",
-                    help="a track's first frame and the N after it go round the loop more times "
+                    help="the N frames after a track's first go round the loop more times "
                          "(PipelineConfig.startup_refine_frames; default: the pipeline's, 10; 0: off)")
     ap.add_argument("--cache", default="/tmp/artrack_bench")
     ap.add_argument("--empty-seed", type=float, default=0.0, metavar="S",

@@ -455,7 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--refine-min-interval", type=float, default=0.05, metavar="S",
                    help="frame interval, s, from which --refine-passes applies (default 0.05: below 20 frames/s)")
     t.add_argument("--startup-refine-frames", type=int, default=10, metavar="N",
-                   help="the frame a track starts on and the N after it go round the loop --startup-refine-passes "
+                   help="the N frames after the one a track started on go round the loop --startup-refine-passes "
                         "more times (the start-up pose is crude; 0: off; default 10)")
     t.add_argument("--startup-refine-passes", type=int, default=2, metavar="K",
                    help="extra passes of those frames (default 2)")

@@ -730,17 +730,13 @@ class Estimator:
         return joints
 
     def reseed(self, stamp_ns: int, joints: np.ndarray, sigma_m: float = 0.05,
-               limb_sigma_m: float | None = None, same_frame: bool = False) -> bool:
+               limb_sigma_m: float | None = None) -> bool:
         """Re-initialise from another estimator's body when this one is lost or has not started
         (ALGORITHMS.md §4: the loose-limbed body "hands its poses to the skeleton"): the body model
         fitted to the 15 output joints (``joints`` (J, 3) world m, order ``body.joint_names``,
         isotropic ``sigma_m``; the elbows, wrists, knees and ankles at ``limb_sigma_m``, by default
-        ``tracking.reseed_limb_sigma_m``) from the rest pose at four headings. same_frame: the
-        body is that of the frame at ``stamp_ns``, which comes next (a refinement pass of a track's
-        first frame, :meth:`artrack.pipeline.SkeletonStage.start_at`): the track starts at that
-        stamp, so that the frame's update follows no time step. Otherwise it starts no later than
-        the last frame estimated. Returns whether it was taken (False while tracking). InputError
-        for a wrong shape or non-finite joints."""
+        ``tracking.reseed_limb_sigma_m``) from the rest pose at four headings. Returns whether it
+        was taken (False while tracking). InputError for a wrong shape or non-finite joints."""
         joints = self.check_reseed_joints(joints)
         if self.theta is not None and self.status != STATUS_LOST:
             return False
@@ -754,7 +750,7 @@ class Estimator:
         theta = self._fit_four_headings(targets, joints.mean(axis=0),
                                         self.body.joint_positions(self.kin.rest).mean(axis=0))
         # never ahead of frames still to come (update() would take that for time going backwards)
-        stamp_ns = int(stamp_ns) if self.stamp_ns is None or same_frame else min(int(stamp_ns), self.stamp_ns)
+        stamp_ns = int(stamp_ns) if self.stamp_ns is None else min(int(stamp_ns), self.stamp_ns)
         self._initialise(stamp_ns, theta, {})
         self._start_verification()
         self.status, self.missed, self.stamp_ns = STATUS_TRACKING, 0, stamp_ns

@@ -156,11 +156,11 @@ class KinematicEstimator(Estimator):
         2-D priors come from the same body as the output."""
         return self.raw.predict(stamp_ns) if self._raw_leads() else super().predict(stamp_ns)
 
-    def reseed(self, stamp_ns, joints, sigma_m=0.05, limb_sigma_m=None, same_frame=False):
+    def reseed(self, stamp_ns, joints, sigma_m=0.05, limb_sigma_m=None):
         """As :meth:`Estimator.reseed`, the raw tracker re-seeded first."""
         if self.raw is not None:
-            self.raw.reseed(stamp_ns, joints, sigma_m, limb_sigma_m, same_frame)
-        return super().reseed(stamp_ns, joints, sigma_m, limb_sigma_m, same_frame)
+            self.raw.reseed(stamp_ns, joints, sigma_m, limb_sigma_m)
+        return super().reseed(stamp_ns, joints, sigma_m, limb_sigma_m)
 
     def _follow_raw_track(self, stamp_ns: int) -> bool:
         """The raw tracker owns the track's life cycle (``kinematic.follow_raw_track``): when it has

@@ -70,14 +70,12 @@ class PipelineConfig:
     #: more times, each pass from the same state with the last pass's body as the priors; 0 = off
     refine_passes: int = 0
     refine_min_interval_s: float = 0.05
-    #: the same at the start of a track: the frame a track starts on and the ``startup_refine_frames``
-    #: frames after it go round the loop ``startup_refine_passes`` more times (at least), whatever
-    #: their interval. The start-up pose is crude (skin blobs matched across views, the rest pose for
-    #: the rest), so the first priors land off the limbs, and the loop, one iteration a frame, took
-    #: ~10 frames to settle on the body (docs/HISTORY.md, stop 62). With edges too since stop 63 (the
-    #: graph's edge_features nodes measure a refined frame again, as blob_features label it). The
-    #: start frame's own passes since stop 71: each starts the track at the pass before's body
-    #: (:meth:`SkeletonStage.start_at`), not from the start-up blobs again. 0 = off.
+    #: the same at the start of a track: the ``startup_refine_frames`` frames after the one a track
+    #: started on go round the loop ``startup_refine_passes`` more times (at least), whatever their
+    #: interval. The start-up pose is crude (skin blobs matched across views, the rest pose for the
+    #: rest), so the first priors land off the limbs, and the loop, one iteration a frame, took ~10
+    #: frames to settle on the body (docs/HISTORY.md, stop 62). With edges too since stop 63 (the
+    #: graph's edge_features nodes measure a refined frame again, as blob_features label it). 0 = off.
     startup_refine_frames: int = 10
     startup_refine_passes: int = 2
 
@@ -87,14 +85,13 @@ def refine_passes(config: PipelineConfig, previous_stamp_ns: int | None, stamp_n
     """How many more times a frame goes round the loop: ``refine_passes`` for a frame at least
     ``refine_min_interval_s`` after the previous one (none for the first frame, ``previous_stamp_ns``
     None), and at least ``startup_refine_passes`` while the track is young: ``track_frames``, the
-    frames just before this one whose body was :func:`refinable`, at most ``startup_refine_frames``
-    (0: the frame may start a track; it goes round again only if it does). The offline pipeline and
-    the skeleton node decide by this."""
+    frames just before this one whose body was :func:`refinable`, between 1 and
+    ``startup_refine_frames``. The offline pipeline and the skeleton node decide by this."""
     passes = 0
     if (config.refine_passes and previous_stamp_ns is not None
             and (stamp_ns - previous_stamp_ns) * 1e-9 >= config.refine_min_interval_s):
         passes = config.refine_passes
-    if config.startup_refine_frames > 0 and track_frames <= config.startup_refine_frames:
+    if 1 <= track_frames <= config.startup_refine_frames:
         passes = max(passes, config.startup_refine_passes)
     return passes
 
@@ -187,15 +184,6 @@ class SkeletonStage:
         prediction = self.estimator.predict(self.clock.next_stamp(stamp_ns))
         self.prediction_ms = (time.perf_counter() - t0) * 1e3  # (the kinematic one runs the solver)
         return estimate, prediction
-
-    def start_at(self, stamp_ns: int, body: BodyEstimate) -> None:
-        """Before a refinement pass of the frame a track started on (``startup_refine_frames``;
-        this stage back in its state before the frame): start the track at ``body``, the pass
-        before's estimate of this very frame (:meth:`Estimator.reseed`, every joint at 5 cm, at the
-        frame's own stamp), so that the pass refines that body with the labels its priors give. A
-        second start from the start-up blobs, labelled by those priors, is a fit over four headings
-        again, and some went wrong (docs/HISTORY.md, stop 70)."""
-        self.estimator.reseed(int(stamp_ns), body.joints, limb_sigma_m=0.05, same_frame=True)
 
 
 class ProjectionStage:
@@ -297,24 +285,19 @@ class ClosedLoopPipeline:
         between frames; when frames come further apart (a slow loop or camera) the prediction
         lands off the limbs, the labels follow it, and more iterations on the same images pull
         the body back onto them. The same holds for the first frames of a track, whose priors come
-        from the crude start-up pose: the frame a track starts on and the ``startup_refine_frames``
-        frames after it go round ``startup_refine_passes`` more times, the start frame's passes
-        each from the pass before's body (:meth:`SkeletonStage.start_at`). The timings are summed
-        over the passes."""
+        from the crude start-up pose: the ``startup_refine_frames`` frames after the one a track
+        started on go round ``startup_refine_passes`` more times. The timings are summed over the
+        passes."""
         extra = refine_passes(self.config, self.last_stamp_ns, stamp_ns, self.track_frames)
         total: dict[str, float] = {}
-        start = None  # a track's first frame: the pass before's body, to start the next pass at
         for done in range(1, extra + 2):
             snapshot = self._snapshot() if done <= extra else None
-            if start is not None:
-                self.skeleton.start_at(stamp_ns, start)
             result = self._step_once(stamp_ns, images)
             for k, v in result.timings_ms.items():
                 total[k] = total.get(k, 0.0) + v
             if snapshot is None or not refinable(result.estimate):
                 break  # the last pass, or no body to refine from: this pass stands
             self._restore(snapshot)
-            start = result.estimate if self.track_frames == 0 else None
             self._feed_back(result.estimate)
         result.timings_ms, result.passes = total, done
         self.last_stamp_ns = int(stamp_ns)

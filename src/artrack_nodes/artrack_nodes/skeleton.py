@@ -20,9 +20,9 @@ the loop up to k more times, as in ``ClosedLoopPipeline.step``: the node goes ba
 before the frame, publishes the frame's body on /artrack/refinement (feedback_projection projects
 it with the frame's stamp; edge_features nodes measure the frame again about it), and waits for
 every camera's blobs (and edge statistics) of the same frame again; the last pass's body and
-prediction are published. The same (lockstep) for the frame a track starts on and the
-``startup_refine_frames`` frames after it, ``startup_refine_passes`` more times each, as offline
-(the start frame's passes each start the track at the pass before's body). A pass whose blobs have not all come after
+prediction are published. The same (lockstep) for the
+``startup_refine_frames`` frames after the one a track started on, ``startup_refine_passes`` more
+times each, as offline. A pass whose blobs have not all come after
 ``refine_timeout_s`` (a feature node restarted since the frame, or one run without
 ``answer_refinements``) is abandoned: the previous pass's body and prediction are published, and if no
 camera's node of a kind (blob_features, or with edges edge_features) answered at all, refinement is
@@ -79,7 +79,7 @@ PARAMS = [
                          "round the loop up to this many more times (the feature nodes answer with their "
                          "answer_refinements)"),
     ("refine_min_interval_s", 0.05, "frame interval from which refine_passes applies, s"),
-    ("startup_refine_frames", 10, "lockstep: the frame a track starts on and this many after it go round "
+    ("startup_refine_frames", 10, "lockstep: the frames after the one a track started on that go round "
                                   "the loop startup_refine_passes more times (the start-up pose is crude); 0 = off; "
                                   "free-running nodes cannot go back: off there"),
     ("startup_refine_passes", 2, "extra passes of those frames"),
@@ -119,9 +119,7 @@ class SkeletonNode(Node):
                              "again from their state before it)")
         self.previous_stamp: int | None = None  # the last frame estimated (refine_passes)
         self.track_frames = 0  # frames in a row whose body was refinable (startup_refine_frames)
-        # while refining: (frame, passes left after the one awaited, the previous pass's body if the
-        # frame starts a track, else None: the awaited pass starts the track at it, SkeletonStage.start_at)
-        self.refining: tuple[int, int, object] | None = None
+        self.refining: tuple[int, int] | None = None  # (frame, passes left after the one awaited) while refining
         # while refining: (monotonic s the pass was asked for, the stage after the previous pass, its estimate,
         # its prediction, its cameras): what is published if the pass's blobs do not come (refine_timeout_s)
         self.refine_fallback: tuple | None = None
@@ -330,8 +328,6 @@ class SkeletonNode(Node):
                 else refine_passes(self.config, self.previous_stamp, stamp, self.track_frames))
         # the state before the frame, to go round again from (ClosedLoopPipeline.step)
         before = state_copy(self.stage, [self.body, self.config, *self.cameras]) if left else None
-        if self.refining is not None and self.refining[2] is not None:
-            self.stage.start_at(stamp, self.refining[2])
         t0 = time.monotonic()
         try:
             estimate, prediction = self.stage.step(stamp, blobs_by_camera, edges)
@@ -345,7 +341,7 @@ class SkeletonNode(Node):
         if before is not None and refinable(estimate):
             self.refine_fallback = (time.monotonic(), self.stage, estimate, prediction, sorted(blobs_by_camera))
             self.stage = before
-            self.refining = (stamp, left - 1, estimate if self.track_frames == 0 else None)
+            self.refining = (stamp, left - 1)
             self.last_done = stamp - 1  # this frame's blobs come again
             self.refine_pub.publish(body_msg(msgs(), estimate, self.p["world_frame"], int(self.p["body_id"])))
             return
