@@ -357,8 +357,8 @@ class ClosedLoopPipeline:
         self.priors = {name: self.wire.priors(name, p, prediction.stamp_ns) for name, p in projected.items()}
 
     def restart(self, stamp_ns: int, joints: np.ndarray) -> None:
-        """Start a new track from a known body before the frame at ``stamp_ns``: the skeleton is
-        reset and re-seeded with ``joints`` (J, 3) world m (:meth:`Estimator.reseed`), its
+        """Start a new track from a known body, the frame at ``stamp_ns``'s own: the skeleton is
+        reset and re-seeded with ``joints`` (J, 3) world m at that stamp (:meth:`Estimator.reseed`), its
         prediction for that frame becomes the priors and the edge reference, and the edge stages
         learn their appearance again there. The benches' "correct start" protocol (the loop's
         drift without the automatic start-up); InputError for bad joints."""
