@@ -604,6 +604,52 @@ def test_the_verification_exchanges_a_lone_start_up_hand_put_on_the_wrong_side(b
     assert max(run()) < 0.05
 
 
+@pytest.mark.parametrize("estimator", ["baseline", "kinematic"])
+def test_the_hand_exchange_is_judged_on_recent_frames_too(body, cameras, estimator):
+    """``tracking.verify_swap_recent_frames``: the start of the test above, with 2-px noise on the
+    blobs, but the hanging left hand stays hidden for the first 12 frames, which fit either
+    labelling about alike (cost ratios 0.6-1.2). Judged on the sums since the start alone (0),
+    those frames hold the ratio up: the hands are exchanged at the fifth frame that shows the
+    hanging hand; judged on the last 3 observed frames as well (the default), at the first
+    (rotation scene seed 19, nine frames at 0.9-1.0: 16 frames after the start on the sums, 9 with
+    the last 3)."""
+    theta = pose_at("rotation", 0.0, body)
+    centres = body.blob_centres(theta)
+    left, right = centres[body.blob_labels.index("l_hand")], centres[body.blob_labels.index("r_hand")]
+    start = startup_blobs(body, cameras, theta)
+    for cam in cameras:  # the left hand hidden in every view at start-up
+        uv, _ = cam.project(left[None])
+        hidden = min((b for b in start[cam.name] if b.label == "skin"), key=lambda b: np.linalg.norm(b.mean - uv[0]))
+        start[cam.name] = [b for b in start[cam.name] if b is not hidden]
+    swap = {"l_hand": "r_hand", "r_hand": "l_hand"}
+    hidden_frames = 12
+
+    def followed(prediction, k, rng):
+        """The 2-D trackers' labels (each hand's blob labelled as the predicted hand nearest it), the
+        hanging hand's blob left out for the first ``hidden_frames`` frames."""
+        nearest = min(("l_hand", "r_hand"), key=lambda lab: np.linalg.norm(_hand(prediction, lab) - left))
+        out = {name: [dataclasses.replace(b, label=b.label if nearest == "l_hand" else swap.get(b.label, b.label))
+                      for b in bl] for name, bl in blobs_2d(body, cameras, theta, rng, sigma_px=2.0).items()}
+        if k <= hidden_frames:
+            out = {name: [b for b in bl if b.label != nearest] for name, bl in out.items()}
+        return out
+
+    def frames_until_right(**tracking):
+        rng = np.random.default_rng(0)
+        est = make_estimator(estimator, body, cameras, {"tracking": tracking})
+        assert est.update(stamp(0), start).status == STATUS_TRACKING
+        for k in range(1, 26):
+            e = est.update(stamp(k), followed(est.predict(stamp(k)), k, rng))
+            if k > hidden_frames and max(np.linalg.norm(_hand(e, "l_hand") - left),
+                                         np.linalg.norm(_hand(e, "r_hand") - right)) < 0.05:
+                return k - hidden_frames
+        return None
+
+    on_sums, on_recent = frames_until_right(verify_swap_recent_frames=0), frames_until_right()
+    print(f"frames from the hanging hand's first view to the exchange: {on_sums} on the sums, {on_recent} on the last 3")
+    assert on_sums >= 3 and on_recent == 1
+
+
 def test_status_initializing_lost_and_recovery(body, cameras):
     cfg = {"tracking": {"lost_after_frames": 3}}
     est = make_estimator("kinematic", body, cameras, cfg)
@@ -803,6 +849,8 @@ def test_config_file_and_errors(body, cameras):
         load_skeleton_config({"measurement": {"view_outlier_chi2": -1.0}})
     with pytest.raises(InputError, match="measurement.view_outlier_after_frames"):
         load_skeleton_config({"measurement": {"view_outlier_after_frames": -1}})
+    with pytest.raises(InputError, match="tracking.verify_swap_recent_frames"):
+        load_skeleton_config({"tracking": {"verify_swap_recent_frames": -1}})
     with pytest.raises(InputError, match="measurement.small_blob_fraction"):
         load_skeleton_config({"measurement": {"small_blob_fraction": -1e-4}})
     with pytest.raises(InputError, match="measurement.min_view_fraction"):

@@ -772,6 +772,8 @@ class Estimator:
         # per tracking.verify_swap_groups group: [current, exchanged] fit costs summed over the frames
         # that observed one of its parts
         self._cost_swapped = [[0.0, 0.0] for _ in groups]
+        # ... and per frame, the newest last (tracking.verify_swap_recent_frames)
+        self._cost_swapped_frames: list[list[tuple[float, float]]] = [[] for _ in groups]
         self._swap_theta: list[np.ndarray | None] = [None] * len(groups)
 
     def _mirrored(self, obs: Mapping[str, Blob3D], keep: Iterable[str] = ()) -> dict[str, Blob3D]:
@@ -859,7 +861,10 @@ class Estimator:
         well, by the same rule: accumulated cost below ``flip_cost_ratio`` times the current one
         re-initialises with them exchanged (seed 10: ratio 0.24-0.29 from the fourth frame on; the
         right starts of default seeds 3 and 7, line seed 1, rotation seed 3 and distractor seed 3:
-        0.97 at the lowest single frame, 1.9-3.6 at the tenth percentile)."""
+        0.97 at the lowest single frame, 1.9-3.6 at the tenth percentile). The ratio is also taken
+        over the group's last ``tracking.verify_swap_recent_frames`` observed frames alone, the lower
+        one deciding: frames before the evidence fit either labelling alike (rotation seed 19: nine
+        frames at 0.9-1.0, then 0.3-0.5, the sums below 0.5 only 16 frames after the start)."""
         f, t = self.cfg.fit, self.cfg.tracking
         mirrored = self._mirrored(obs)
         targets, targets_m = self._blob_targets(obs), self._blob_targets(mirrored)
@@ -878,10 +883,16 @@ class Estimator:
                 1.0, f.max_nfev, tolerance=f.tolerance,
             )
             self._swap_theta[g] = theta_s
-            sums = self._cost_swapped[g]
+            sums, recent = self._cost_swapped[g], self._cost_swapped_frames[g]
             sums[0] += cost_c
             sums[1] += cost_s
-            swaps.append((sums[1] / max(sums[0], 1e-12), theta_s, exchanged))
+            recent.append((cost_c, cost_s))
+            ratio = sums[1] / max(sums[0], 1e-12)
+            n = t.verify_swap_recent_frames
+            if 0 < n <= len(recent):
+                c_n, s_n = np.sum(recent[-n:], axis=0)
+                ratio = min(ratio, s_n / max(c_n, 1e-12))
+            swaps.append((ratio, theta_s, exchanged))
         if self._flip_theta is None:
             yaw = root_heading(exp_so3(self.theta[3:6])) + math.pi
             theta_f, cost_f = self._init_fit(targets_m, self._rest_at(self.theta[0:3], yaw))

@@ -92,6 +92,9 @@ class TrackingConfig:
     #: parts (no side prefix) whose left/right labels the verification also exchanges alone, heading
     #: kept, and switches to by the same ``flip_cost_ratio`` rule; [] = none
     verify_swap_groups: list = field(default_factory=lambda: [["hand"]])
+    #: ... judged also on the group's last this many observed frames alone (0 = on the sums since the
+    #: start only): frames before the evidence, which fit either labelling alike, no longer hold it off
+    verify_swap_recent_frames: int = 3
     #: the face check (:func:`artrack.startup.facing_agreement`): over this many frames while tracking (0 = off) ...
     facing_check_frames: int = 15
     #: ... a mean cosine below this between the estimated facing and the way the ``facing_label``
@@ -424,6 +427,9 @@ def load_skeleton_config(config: SkeletonConfig | Mapping[str, Any] | None = Non
         raise InputError("skeleton config: field 'measurement.view_association_margin_chi2' must be >= 0")
     if not out.measurement.view_outlier_chi2 >= 0:
         raise InputError("skeleton config: field 'measurement.view_outlier_chi2' must be >= 0 (0 = off)")
+    if not isinstance(out.tracking.verify_swap_recent_frames, int) or out.tracking.verify_swap_recent_frames < 0:
+        raise InputError("skeleton config: field 'tracking.verify_swap_recent_frames' must be an integer >= 0 "
+                         f"(0 = off; got {out.tracking.verify_swap_recent_frames!r})")
     if not isinstance(out.measurement.view_outlier_after_frames, int) or out.measurement.view_outlier_after_frames < 0:
         raise InputError("skeleton config: field 'measurement.view_outlier_after_frames' must be an integer >= 0")
     if not out.measurement.min_view_fraction >= 0:
