@@ -646,7 +646,7 @@ def test_the_hand_exchange_is_judged_on_recent_frames_too(body, cameras, estimat
         return None
 
     on_sums, on_recent = frames_until_right(verify_swap_recent_frames=0), frames_until_right()
-    print(f"frames from the hanging hand's first view to the exchange: {on_sums} on the sums, {on_recent} on the last 3")
+    print(f"frames from the hanging hand's first view to the exchange: {on_sums} on the sums, {on_recent} recent")
     assert on_sums >= 3 and on_recent == 1
 
 
