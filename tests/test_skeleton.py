@@ -561,6 +561,21 @@ def test_an_oversized_view_of_a_start_up_point_takes_no_blob_from_the_face(camer
     assert found[0][0][2] < face[2] - 0.1  # the hand was matched first
 
 
+def _lone_hand_start(body, cameras):
+    """The rotation scene's start (theta, true left and right hand blob centres, start-up blobs):
+    the right hand raised in front of the chest, a few cm left of the body axis, the left hand
+    hidden in every view."""
+    theta = pose_at("rotation", 0.0, body)
+    centres = body.blob_centres(theta)
+    left, right = centres[body.blob_labels.index("l_hand")], centres[body.blob_labels.index("r_hand")]
+    start = startup_blobs(body, cameras, theta)
+    for cam in cameras:
+        uv, _ = cam.project(left[None])
+        hidden = min((b for b in start[cam.name] if b.label == "skin"), key=lambda b: np.linalg.norm(b.mean - uv[0]))
+        start[cam.name] = [b for b in start[cam.name] if b is not hidden]
+    return theta, left, right, start
+
+
 @pytest.mark.parametrize("estimator", ["baseline", "kinematic"])
 def test_the_verification_exchanges_a_lone_start_up_hand_put_on_the_wrong_side(body, cameras, estimator):
     """``tracking.verify_swap_groups`` (:meth:`Estimator._verify_facing`). The rotation scene's start:
@@ -570,16 +585,8 @@ def test_the_verification_exchanges_a_lone_start_up_hand_put_on_the_wrong_side(b
     'l_hand', the hanging one, once seen, 'r_hand'). With hands fitted exchanged during the
     verification the tracker switches to the right labels within a few frames; without ([]), the
     arms stay crossed, both hands 0.3 m or more off."""
-    theta = pose_at("rotation", 0.0, body)
-    labels = body.blob_labels
-    centres = body.blob_centres(theta)
-    left, right = centres[labels.index("l_hand")], centres[labels.index("r_hand")]
+    theta, left, right, start = _lone_hand_start(body, cameras)
     assert 0.0 < right[1] - theta[1] < 0.1 and right[2] > 1.2  # raised, just left of the axis
-    start = startup_blobs(body, cameras, theta)
-    for cam in cameras:  # the left hand hidden in every view at start-up
-        uv, _ = cam.project(left[None])
-        hidden = min((b for b in start[cam.name] if b.label == "skin"), key=lambda b: np.linalg.norm(b.mean - uv[0]))
-        start[cam.name] = [b for b in start[cam.name] if b is not hidden]
     true_blobs = blobs_2d(body, cameras, theta)
     swap = {"l_hand": "r_hand", "r_hand": "l_hand"}
 
@@ -613,14 +620,7 @@ def test_the_hand_exchange_is_judged_on_recent_frames_too(body, cameras, estimat
     hanging hand; judged on the last 3 observed frames as well (the default), at the first
     (rotation scene seed 19, nine frames at 0.9-1.0: 16 frames after the start on the sums, 9 with
     the last 3)."""
-    theta = pose_at("rotation", 0.0, body)
-    centres = body.blob_centres(theta)
-    left, right = centres[body.blob_labels.index("l_hand")], centres[body.blob_labels.index("r_hand")]
-    start = startup_blobs(body, cameras, theta)
-    for cam in cameras:  # the left hand hidden in every view at start-up
-        uv, _ = cam.project(left[None])
-        hidden = min((b for b in start[cam.name] if b.label == "skin"), key=lambda b: np.linalg.norm(b.mean - uv[0]))
-        start[cam.name] = [b for b in start[cam.name] if b is not hidden]
+    theta, left, right, start = _lone_hand_start(body, cameras)
     swap = {"l_hand": "r_hand", "r_hand": "l_hand"}
     hidden_frames = 12
 
