@@ -16,7 +16,10 @@ form, in the link's own frame about the prediction (``E = E_ref exp(xi)``, see :
 A single linearisation at the prediction recovers only part of a frame's motion — a swinging
 limb moves further than one re-weighted step follows — and in the closed loop from a correct
 pose, blobs with it were no better than blobs alone (seeds 1-3: 200 against 157 mm); iterated
-per view, blobs + edges beat blobs alone (``bench/closed_loop.py --true-start 60``, docs/MEASUREMENTS.md).
+per view, blobs + edges beat blobs alone from the automatic start (default scene seeds 1-26, limbs
+38.1 -> 28.7 mm, stop 71; docs/MEASUREMENTS.md). From a correct pose (``bench/closed_loop.py
+--true-start 60``, seeds 1-6) they do on 2 of 6 only: with the arms overhead the arms' edges can
+spin the trunk's yaw (docs/HISTORY.md, stop 71).
 The appearance (edge polarity colours) is learnt at the first prediction and again whenever the
 skeleton is (re-)initialised (:meth:`EdgeStage.step` with ``status``; :meth:`EdgeStage.relearn`).
 
