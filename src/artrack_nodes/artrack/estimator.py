@@ -769,11 +769,9 @@ class Estimator:
         self._cost_current = self._cost_flipped = 0.0
         self._flip_theta: np.ndarray | None = None
         groups = self.cfg.tracking.verify_swap_groups
-        # per tracking.verify_swap_groups group: [current, exchanged] fit costs summed over the frames
-        # that observed one of its parts
-        self._cost_swapped = [[0.0, 0.0] for _ in groups]
-        # ... and per frame, the newest last (tracking.verify_swap_recent_frames)
-        self._cost_swapped_frames: list[list[tuple[float, float]]] = [[] for _ in groups]
+        # per tracking.verify_swap_groups group: the (current, exchanged) fit costs of each frame that
+        # observed one of its parts, the newest last
+        self._cost_swapped: list[list[tuple[float, float]]] = [[] for _ in groups]
         self._swap_theta: list[np.ndarray | None] = [None] * len(groups)
 
     def _mirrored(self, obs: Mapping[str, Blob3D], keep: Iterable[str] = ()) -> dict[str, Blob3D]:
@@ -883,14 +881,12 @@ class Estimator:
                 1.0, f.max_nfev, tolerance=f.tolerance,
             )
             self._swap_theta[g] = theta_s
-            sums, recent = self._cost_swapped[g], self._cost_swapped_frames[g]
-            sums[0] += cost_c
-            sums[1] += cost_s
-            recent.append((cost_c, cost_s))
-            ratio = sums[1] / max(sums[0], 1e-12)
+            costs = self._cost_swapped[g]
+            costs.append((cost_c, cost_s))
+            ratio = sum(c[1] for c in costs) / max(sum(c[0] for c in costs), 1e-12)
             n = t.verify_swap_recent_frames
-            if 0 < n <= len(recent):
-                c_n, s_n = np.sum(recent[-n:], axis=0)
+            if 0 < n <= len(costs):
+                c_n, s_n = np.sum(costs[-n:], axis=0)
                 ratio = min(ratio, s_n / max(c_n, 1e-12))
             swaps.append((ratio, theta_s, exchanged))
         if self._flip_theta is None:
