@@ -191,7 +191,7 @@ def _link(data, name):
     (lambda d: _link(d, "l_shin").pop("axis"), "link 'l_shin' field 'axis'"),
     (lambda d: _link(d, "r_foot").__setitem__("colour", "purple"), "link 'r_foot' field 'colour'"),
     (lambda d: d["joints"][0].__setitem__("link", "nope"), "joint 'pelvis' names unknown link 'nope'"),
-    (lambda d: _link(d, "l_hand")["blob"].__setitem__("colour", "shoes"),
+    (lambda d: _link(d, "l_hand")["blob"].update(colour="shoes", centre="auto"),
      "link 'l_hand' field 'blob': 'auto' needs a visible shape of the blob's colour"),
 ])
 def test_errors_name_link_and_field(raw, mutate, expected):

@@ -136,7 +136,7 @@ class TrackingConfig:
 
 
 def _default_rest_sigmas() -> dict[str, float]:
-    return {"torso": 0.3, "head": 0.5, "l_hand": 0.6, "r_hand": 0.6, "l_foot": 0.3, "r_foot": 0.3}
+    return {"torso": 0.3, "head": 0.5, "l_hand": 0.3, "r_hand": 0.3, "l_foot": 0.3, "r_foot": 0.3}
 
 
 @dataclass
